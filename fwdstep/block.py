@@ -1,0 +1,242 @@
+"""The block contract.
+
+A block is a *description*: it declares, once, in ``setup``:
+
+* named input ports and output ports with fixed shapes (``()`` scalar, ``(n,)`` vector,
+  ``(n, p)`` matrix);
+* per output port, which inputs it depends on directly (*feedthrough*; default: all);
+* its continuous state: a flat vector of ``n_states`` numbers and its initial value;
+* its numeric parameters, stored in ``self.p`` as arrays whose **leading axis is the batch
+  axis** (length 1 for a single run; stacked to length B by a batched sweep).
+
+and implements two pure functions on arrays that all carry a leading batch axis ``B``:
+
+``output(t, x, u) -> tuple``
+    ``t`` float, ``x`` array ``(B, n_states)``, ``u`` tuple of input arrays in declared
+    order, each ``(B, *shape)`` or ``(1, *shape)`` (broadcastable).  Returns one array per
+    declared output, in declared order, each broadcastable to ``(B, *shape)``.
+``derivative(t, x, u) -> array (B, n_states)``
+    Only for blocks with state.
+
+Neither may mutate ``self``, ``x`` or ``u``.  Per-run data (time, state, logs) live in the
+simulator, never in the block, so a compiled diagram can be run any number of times.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .errors import ParameterError
+
+#: The largest state a single block may declare; larger requests are refused before any
+#: allocation (a 10**9-state block would need 8 GB per copy of the state).
+MAX_BLOCK_STATES = 200_000
+#: The largest number of elements in one signal.
+MAX_SIGNAL_SIZE = 1_000_000
+
+REQUIRED = object()
+
+
+@dataclass(frozen=True)
+class Param:
+    """Declaration of one block parameter.
+
+    kind:
+      ``float`` (scalar number), ``int`` (whole number), ``bool``, ``str`` (literal text),
+      ``array`` (number, list or nested list -> float ndarray), ``choice`` (one of
+      ``choices``), ``any`` (passed through after expression evaluation).
+    Numeric kinds accept expression strings, evaluated against the diagram's parameters.
+    """
+
+    kind: str
+    default: Any = REQUIRED
+    doc: str = ""
+    choices: tuple = ()
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+
+@dataclass(frozen=True)
+class Port:
+    name: str
+    shape: tuple
+    optional: bool = False   # inputs only: unconnected -> zeros (documented per block)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
+
+
+def shape_str(shape: tuple) -> str:
+    if shape == ():
+        return "scalar ()"
+    return "(" + ", ".join(str(s) for s in shape) + (",)" if len(shape) == 1 else ")")
+
+
+class Block:
+    """Base class of every library block. See the module docstring for the contract."""
+
+    #: registry name (set by ``blocks.register``)
+    type_name: ClassVar[str] = ""
+    #: parameter declarations
+    params: ClassVar[dict[str, Param]] = {}
+    #: parameters that make a valid instance, used by the contract tests and ``fwdstep blocks``
+    example: ClassVar[dict] = {}
+    #: True when ``initial_state(t0, u)`` must be called with the inputs at t0
+    init_from_inputs: ClassVar[bool] = False
+
+    def __init__(self, name: str, **params: Any):
+        self.name = name
+        self.inputs: dict[str, Port] = {}
+        self.outputs: dict[str, Port] = {}
+        self._feedthrough: dict[str, tuple | None] = {}
+        self.n_states = 0
+        self.x0 = np.zeros((1, 0))
+        self.state_labels: list[str] | None = None
+        self.p = SimpleNamespace()
+        values = self._check_params(params)
+        self.values = values
+        self.setup(**values)
+        for port in list(self.inputs.values()) + list(self.outputs.values()):
+            if port.size > MAX_SIGNAL_SIZE:
+                raise ParameterError(
+                    f"block '{name}': port '{port.name}' would have {port.size} elements "
+                    f"(limit {MAX_SIGNAL_SIZE})", block=name, port=port.name)
+
+    # ------------------------------------------------------------------ declaration API
+    def setup(self, **params: Any) -> None:  # pragma: no cover - overridden
+        """Declare ports, states and parameters from the validated ``params``."""
+
+    def declare_input(self, name: str, shape=(), optional: bool = False) -> None:
+        self.inputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
+                                 if shape != () else (), optional)
+
+    def declare_output(self, name: str, shape=(), feedthrough=None) -> None:
+        """``feedthrough``: None = depends on every input; a tuple of input names otherwise
+        (``()`` = depends on state and time only)."""
+        self.outputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
+                                  if shape != () else ())
+        self._feedthrough[name] = None if feedthrough is None else tuple(feedthrough)
+
+    def declare_state(self, n: int, initial=None) -> None:
+        n = int(n)
+        if n < 0 or n > MAX_BLOCK_STATES:
+            raise ParameterError(
+                f"block '{self.name}' would have {n} states (limit {MAX_BLOCK_STATES})",
+                block=self.name)
+        self.n_states = n
+        x0 = np.zeros(n) if initial is None else np.asarray(initial, dtype=float)
+        x0 = np.broadcast_to(x0, (n,)) if x0.ndim <= 1 and x0.size in (1, n) else x0
+        if x0.size != n:
+            raise ParameterError(f"block '{self.name}': initial state has {x0.size} values, "
+                                 f"the block has {n} states", block=self.name)
+        self.x0 = np.array(x0, dtype=float).reshape(1, n)
+
+    def set_param(self, name: str, value) -> np.ndarray:
+        """Store a numeric run-time parameter with a leading batch axis of length 1."""
+        arr = np.asarray(value, dtype=float)[None]
+        setattr(self.p, name, arr)
+        return arr
+
+    def require_size(self, what: str, value: int, maximum: int) -> int:
+        """Refuse absurd sizes before anything is allocated."""
+        if value > maximum:
+            raise ParameterError(f"block '{self.name}': {what} = {value} is larger than the "
+                                 f"limit {maximum}", block=self.name)
+        return value
+
+    def feedthrough(self, output: str) -> tuple:
+        ft = self._feedthrough[output]
+        return tuple(self.inputs) if ft is None else ft
+
+    # ------------------------------------------------------------------ run-time API
+    def output(self, t: float, x: np.ndarray, u: tuple) -> tuple:
+        return ()
+
+    def derivative(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
+        raise NotImplementedError
+
+    def initial_state(self, t0: float, u: tuple) -> np.ndarray:
+        """For ``init_from_inputs`` blocks: the initial state ``(B, n_states)`` from the
+        inputs at t0."""
+        return self.x0
+
+    def finalize(self, batch: int) -> None:
+        """Called once after parameters are stacked for a batch of ``batch`` variants;
+        blocks may pick fast paths here (never during a run)."""
+
+    # ------------------------------------------------------------------ helpers
+    @classmethod
+    def summary(cls) -> str:
+        doc = (cls.__doc__ or "").strip().splitlines()
+        return doc[0] if doc else ""
+
+    def _check_params(self, given: dict) -> dict:
+        out = {}
+        unknown = [k for k in given if k not in self.params]
+        if unknown:
+            valid = ", ".join(self.params) or "(none)"
+            raise ParameterError(
+                f"block '{self.name}' ({self.type_name}) has no parameter '{unknown[0]}'; "
+                f"valid parameters are: {valid}", block=self.name, port=None)
+        for key, decl in self.params.items():
+            if key not in given:
+                if decl.required:
+                    raise ParameterError(
+                        f"block '{self.name}' ({self.type_name}) is missing required parameter "
+                        f"'{key}' ({decl.doc or decl.kind})", block=self.name)
+                out[key] = decl.default
+                continue
+            out[key] = coerce(self.name, key, decl, given[key])
+        return out
+
+
+def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
+    """Check and convert an (already expression-evaluated) parameter value."""
+    def bad(expected: str):
+        return ParameterError(
+            f"block '{block}' parameter '{key}' must be {expected}, got {value!r}"[:300],
+            block=block)
+
+    kind = decl.kind
+    if kind == "any":
+        return value
+    if kind == "str":
+        if not isinstance(value, str):
+            raise bad("a string")
+        return value
+    if kind == "choice":
+        if value not in decl.choices:
+            raise ParameterError(
+                f"block '{block}' parameter '{key}' must be one of "
+                f"{', '.join(map(str, decl.choices))}, got {value!r}", block=block)
+        return value
+    if kind == "bool":
+        if not isinstance(value, (bool, np.bool_)):
+            raise bad("true or false")
+        return bool(value)
+    if isinstance(value, (str, bool)) or value is None:
+        raise bad("a number" if kind in ("float", "int") else "a number or array")
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (ValueError, TypeError):
+        raise bad("a number or a rectangular array of numbers") from None
+    if not np.all(np.isfinite(arr)):
+        raise bad("finite")
+    if kind == "float":
+        if arr.ndim != 0:
+            raise bad("a single number")
+        return float(arr)
+    if kind == "int":
+        if arr.ndim != 0 or arr != math.floor(arr):
+            raise bad("a whole number")
+        return int(arr)
+    if kind == "array":
+        return arr
+    raise ValueError(f"unknown parameter kind {kind!r}")  # programming error
