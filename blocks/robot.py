@@ -1,1 +1,381 @@
-"""(being written)"""
+"""Robot manipulator plants (eq. (1)) and their regressors (Property 3).
+
+Every plant obeys eq. (1) of the paper, ``H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star``
+(the paper writes M for the inertia matrix H), with state ``(q, qdot)`` and outputs ``q`` and
+``qdot`` that depend on the state only; ``qddot`` is not an output (it would feed through from
+``tau`` and is not measured on a real arm).  Each plant comes with a regressor block whose
+output ``Y`` satisfies ``H(q) zetad + C(q, qdot) zeta + g(q) = Y(q, qdot, zeta, zetad) theta``,
+with the parameter vector ``theta`` documented on the plant (``parameter_vector``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fwdstep.block import MAX_BLOCK_STATES, Block, Param
+from fwdstep.errors import ParameterError
+from fwdstep.registry import register
+
+#: Physical parameters of the two-link arm (Slotine & Li, Applied Nonlinear Control,
+#: Example 9.2) with their defaults.
+TWO_LINK_DEFAULTS = {
+    "m1": 1.0, "l1": 1.0, "me": 2.0, "delta_e": 30.0,
+    "I1": 0.12, "lc1": 0.5, "Ie": 0.25, "lce": 0.6, "gravity": 0.0,
+}
+
+
+def two_link_theta(m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity):
+    """The 7 lumped parameters [a1, ..., a7] of the two-link arm (a5..a7 are 0 without
+    gravity); ``delta_e`` in degrees."""
+    de = math.radians(delta_e)
+    return np.array([
+        I1 + m1 * lc1 ** 2 + Ie + me * lce ** 2 + me * l1 ** 2,   # a1
+        Ie + me * lce ** 2,                                        # a2
+        me * l1 * lce * math.cos(de),                              # a3
+        me * l1 * lce * math.sin(de),                              # a4
+        (m1 * lc1 + me * l1) * gravity,                            # a5
+        me * lce * gravity * math.cos(de),                         # a6
+        me * lce * gravity * math.sin(de),                         # a7
+    ])
+
+
+def _two_link_params():
+    docs = {
+        "m1": "mass of link 1 (kg)",
+        "l1": "length of link 1 (m)",
+        "me": "mass of link 2 with its end effector (kg)",
+        "delta_e": "angle of the link-2 centre of mass off the link axis (degrees)",
+        "I1": "inertia of link 1 about its centre of mass (kg m^2)",
+        "lc1": "distance from joint 1 to the centre of mass of link 1 (m)",
+        "Ie": "inertia of link 2 about its centre of mass (kg m^2)",
+        "lce": "distance from joint 2 to the centre of mass of link 2 (m)",
+        "gravity": "gravitational acceleration in the plane of motion (m/s^2); 0 = horizontal "
+                   "arm, 9.81 = vertical arm",
+    }
+    return {k: Param("float", TWO_LINK_DEFAULTS[k], docs[k]) for k in TWO_LINK_DEFAULTS}
+
+
+def _vector_param(block: Block, key: str, value, n: int) -> np.ndarray:
+    """``value`` as a float vector of length ``n`` (a scalar is repeated)."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ParameterError(f"block {block.name!r} parameter {key!r} must be a number or a "
+                             f"list of {n} numbers, got shape {arr.shape}", block=block.name)
+    return arr.copy()
+
+
+@register
+class TwoLinkArm(Block):
+    """Two-link planar arm (Slotine & Li): H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star.
+
+    Equation (1) of the paper with n = 2 (the paper writes M for H):
+
+        a1 = I1 + m1 lc1^2 + Ie + me lce^2 + me l1^2,   a2 = Ie + me lce^2,
+        a3 = me l1 lce cos(delta_e),                     a4 = me l1 lce sin(delta_e),
+        H11 = a1 + 2 a3 cos q2 + 2 a4 sin q2,  H12 = H21 = a2 + a3 cos q2 + a4 sin q2,  H22 = a2,
+        hh = a3 sin q2 - a4 cos q2,
+        C = [[-hh qdot2, -hh (qdot1 + qdot2)], [hh qdot1, 0]],
+        g = [(m1 lc1 + me l1) g cos q1 + me lce g cos(q1 + q2 + delta_e),
+             me lce g cos(q1 + q2 + delta_e)]
+
+    H is symmetric positive definite (Property 1), Hdot - 2C is skew-symmetric (Property 2),
+    and g = dP/dq with P = (m1 lc1 + me l1) g sin q1 + me lce g sin(q1 + q2 + delta_e).  The
+    2x2 system is solved in closed form.  ``tau_star`` (the paper's reference torque, e.g. a
+    disturbance) is optional: unconnected, it is zero.  The lumped parameter vector theta of
+    Property 3, matching the ``Regressor`` block, is ``TwoLinkArm.parameter_vector(**params)``.
+    State order: q1, q2, qdot1, qdot2.
+
+    Ports:
+        | port     | direction | shape | feedthrough |
+        | tau      | in        | (2,)  | -           |
+        | tau_star | in        | (2,)  | -           |
+        | q        | out       | (2,)  | -           |
+        | qdot     | out       | (2,)  | -           |
+
+    Parameters:
+        m1, l1, me, delta_e, I1, lc1, Ie, lce: physical parameters (defaults: Slotine & Li,
+            Example 9.2: 1, 1, 2, 30 deg, 0.12, 0.5, 0.25, 0.6); delta_e in degrees.
+        gravity: gravitational acceleration g (default 0: horizontal plane).
+        q0, qdot0: initial joint position and velocity (2 numbers each, or one number for both).
+    """
+
+    params = {
+        **_two_link_params(),
+        "q0": Param("array", 0.0, "initial joint position [q1, q2] (rad)"),
+        "qdot0": Param("array", 0.0, "initial joint velocity [qdot1, qdot2] (rad/s)"),
+    }
+    example = {"q0": [0.1, -0.2], "qdot0": [0.0, 0.5], "gravity": 9.81}
+
+    @staticmethod
+    def parameter_vector(**params) -> np.ndarray:
+        """The true theta for the ``Regressor`` block: [a1, a2, a3, a4] for a horizontal arm
+        (gravity = 0), [a1, ..., a7] otherwise, with a5 = (m1 lc1 + me l1) g,
+        a6 = me lce g cos(delta_e), a7 = me lce g sin(delta_e).  Missing keys take the
+        block's defaults; q0 and qdot0 are accepted and ignored."""
+        values = dict(TWO_LINK_DEFAULTS)
+        for key, value in params.items():
+            if key in ("q0", "qdot0"):
+                continue
+            if key not in values:
+                raise ParameterError(f"TwoLinkArm has no parameter {key!r}; valid parameters "
+                                     f"are: {', '.join(TWO_LINK_DEFAULTS)}")
+            values[key] = float(value)
+        theta = two_link_theta(**values)
+        return theta if values["gravity"] != 0.0 else theta[:4]
+
+    def setup(self, m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity, q0, qdot0):
+        for key, value in (("m1", m1), ("me", me), ("l1", l1), ("lce", lce)):
+            if value <= 0.0:
+                raise ParameterError(f"block {self.name!r} parameter {key!r} must be positive, "
+                                     f"got {value}", block=self.name)
+        for key, value in (("I1", I1), ("Ie", Ie), ("lc1", lc1)):
+            if value < 0.0:
+                raise ParameterError(f"block {self.name!r} parameter {key!r} must not be "
+                                     f"negative, got {value}", block=self.name)
+        theta = two_link_theta(m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity)
+        a1, a2 = theta[0], theta[1]
+        r2 = theta[2] ** 2 + theta[3] ** 2
+        # det H = a2 (a1 - a2) - (a3 cos q2 + a4 sin q2)^2 >= a2 (a1 - a2) - (a3^2 + a4^2)
+        if a2 * (a1 - a2) - r2 <= 1e-12 * a1 * a1:
+            raise ParameterError(f"block {self.name!r} parameters give an inertia matrix that is "
+                                 f"not positive definite for every q2 (need I1, Ie or lc1 > 0)",
+                                 block=self.name)
+        self.declare_input("tau", (2,))
+        self.declare_input("tau_star", (2,), optional=True)
+        self.declare_output("q", (2,), feedthrough=())
+        self.declare_output("qdot", (2,), feedthrough=())
+        x0 = np.concatenate([_vector_param(self, "q0", q0, 2),
+                             _vector_param(self, "qdot0", qdot0, 2)])
+        self.declare_state(4, x0)
+        self.state_labels = ["q1", "q2", "qdot1", "qdot2"]
+        self.set_param("theta", theta)
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        theta = self.p.theta                      # (B, 7)
+        self._a = [theta[:, k] for k in range(7)]  # each (B,)
+        self._gravity = bool(np.any(theta[:, 4:] != 0.0))
+
+    def output(self, t, x, u):
+        return x[:, 0:2], x[:, 2:4]
+
+    def derivative(self, t, x, u):
+        a1, a2, a3, a4, a5, a6, a7 = self._a
+        q1 = x[:, 0]
+        q2 = x[:, 1]
+        qd1 = x[:, 2]
+        qd2 = x[:, 3]
+        c2 = np.cos(q2)
+        s2 = np.sin(q2)
+        h12 = a2 + a3 * c2 + a4 * s2
+        h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
+        hh = a3 * s2 - a4 * c2
+        torque = u[0] + u[1]
+        # r = tau + tau_star - C qdot - g
+        r1 = torque[:, 0] + hh * (2.0 * qd1 + qd2) * qd2
+        r2 = torque[:, 1] - hh * qd1 * qd1
+        if self._gravity:
+            q12 = q1 + q2
+            g2 = a6 * np.cos(q12) - a7 * np.sin(q12)
+            r1 = r1 - a5 * np.cos(q1) - g2
+            r2 = r2 - g2
+        inv_det = 1.0 / (h11 * a2 - h12 * h12)
+        dx = np.empty((r1.shape[0], 4))
+        dx[:, 0] = qd1
+        dx[:, 1] = qd2
+        dx[:, 2] = (a2 * r1 - h12 * r2) * inv_det
+        dx[:, 3] = (h11 * r2 - h12 * r1) * inv_det
+        return dx
+
+
+@register
+class Regressor(Block):
+    """Two-link-arm regressor Y(q, qdot, zeta, zetad) with H zetad + C zeta + g = Y theta.
+
+    Property 3 of the paper for the ``TwoLinkArm`` block, as used in eq. (4)-(5)
+    (``zeta = z``, ``zetad = zdot``).  With c2 = cos q2, s2 = sin q2, q12 = q1 + q2 and the
+    parameter vector theta = [a1, a2, a3, a4] (horizontal) or [a1, ..., a7] (gravity != 0),
+    given by ``TwoLinkArm.parameter_vector``:
+
+        Y[0] = [zd1, zd2, c2 (2 zd1 + zd2) - s2 (qd2 z1 + (qd1 + qd2) z2),
+                s2 (2 zd1 + zd2) + c2 (qd2 z1 + (qd1 + qd2) z2), cos q1, cos q12, -sin q12]
+        Y[1] = [0, zd1 + zd2, c2 zd1 + s2 qd1 z1, s2 zd1 - c2 qd1 z1, 0, cos q12, -sin q12]
+
+    (the last three columns only with gravity).  The gravitational acceleration g is inside
+    a5..a7, so only whether ``gravity`` is zero matters here: give it the same value as the
+    plant's.
+
+    Ports:
+        | port  | direction | shape  | feedthrough            |
+        | q     | in        | (2,)   | -                      |
+        | qdot  | in        | (2,)   | -                      |
+        | zeta  | in        | (2,)   | -                      |
+        | zetad | in        | (2,)   | -                      |
+        | Y     | out       | (2, p) | q, qdot, zeta, zetad   |
+
+    Parameters:
+        gravity: the plant's gravitational acceleration; 0 gives p = 4, anything else p = 7.
+    """
+
+    params = {
+        "gravity": Param("float", 0.0, "the plant's gravitational acceleration (0: p = 4, "
+                                       "else p = 7)"),
+    }
+    example = {"gravity": 9.81}
+
+    def setup(self, gravity):
+        self._gravity = gravity != 0.0
+        self._p = 7 if self._gravity else 4
+        for name in ("q", "qdot", "zeta", "zetad"):
+            self.declare_input(name, (2,))
+        self.declare_output("Y", (2, self._p), feedthrough=("q", "qdot", "zeta", "zetad"))
+
+    def output(self, t, x, u):
+        q, qdot, zeta, zetad = u
+        batch = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
+        q2 = q[:, 1]
+        qd1 = qdot[:, 0]
+        z1 = zeta[:, 0]
+        z2 = zeta[:, 1]
+        zd1 = zetad[:, 0]
+        zd2 = zetad[:, 1]
+        c2 = np.cos(q2)
+        s2 = np.sin(q2)
+        v1 = qdot[:, 1] * z1 + (qd1 + qdot[:, 1]) * z2      # row-1 Coriolis factor
+        v2 = qd1 * z1                                       # row-2 Coriolis factor
+        w1 = 2.0 * zd1 + zd2
+        Y = np.zeros((batch, 2, self._p))
+        Y[:, 0, 0] = zd1
+        Y[:, 0, 1] = zd2
+        Y[:, 0, 2] = c2 * w1 - s2 * v1
+        Y[:, 0, 3] = s2 * w1 + c2 * v1
+        Y[:, 1, 1] = zd1 + zd2
+        Y[:, 1, 2] = c2 * zd1 + s2 * v2
+        Y[:, 1, 3] = s2 * zd1 - c2 * v2
+        if self._gravity:
+            q12 = q[:, 0] + q2
+            c12 = np.cos(q12)
+            s12 = np.sin(q12)
+            Y[:, 0, 4] = np.cos(q[:, 0])
+            Y[:, 0, 5] = c12
+            Y[:, 1, 5] = c12
+            Y[:, 0, 6] = -s12
+            Y[:, 1, 6] = -s12
+        return (Y,)
+
+
+@register
+class PointMass(Block):
+    """n independent point masses: m qddot = tau + tau_star (eq. (1) with H = diag(m), C = g = 0).
+
+    The simplest plant satisfying Properties 1-3; its regressor is ``PointMassRegressor``
+    with theta = the n masses.  ``tau_star`` is optional: unconnected, it is zero.  State
+    order: q (n values), then qdot (n values).
+
+    Ports:
+        | port     | direction | shape | feedthrough |
+        | tau      | in        | (n,)  | -           |
+        | tau_star | in        | (n,)  | -           |
+        | q        | out       | (n,)  | -           |
+        | qdot     | out       | (n,)  | -           |
+
+    Parameters:
+        mass: one mass shared by all axes, or n masses (positive).
+        n: number of axes (default: the length of mass, q0 or qdot0, else 1).
+        q0, qdot0: initial position and velocity (one number for all axes, or n numbers).
+    """
+
+    params = {
+        "mass": Param("array", 1.0, "mass, scalar or one per axis (kg)"),
+        "n": Param("int", None, "number of axes (default: inferred from mass, q0, qdot0)"),
+        "q0": Param("array", 0.0, "initial position, scalar or (n,)"),
+        "qdot0": Param("array", 0.0, "initial velocity, scalar or (n,)"),
+    }
+    example = {"mass": [1.0, 2.0], "q0": [0.5, -1.0]}
+
+    @staticmethod
+    def parameter_vector(mass=1.0, n=None, **ignored) -> np.ndarray:
+        """The true theta for ``PointMassRegressor``: the n masses."""
+        mass = np.asarray(mass, dtype=float)
+        if n is None:
+            n = mass.size if mass.ndim else 1
+        return np.broadcast_to(mass, (int(n),)).copy()
+
+    def setup(self, mass, n, q0, qdot0):
+        if n is None:
+            sizes = [np.asarray(v).size for v in (mass, q0, qdot0) if np.asarray(v).ndim > 0]
+            n = sizes[0] if sizes else 1
+        if n < 1:
+            raise ParameterError(f"block {self.name!r} parameter 'n' must be at least 1, got {n}",
+                                 block=self.name)
+        n = self.require_size("n", n, MAX_BLOCK_STATES // 2)
+        m = _vector_param(self, "mass", mass, n)
+        if np.any(m <= 0.0):
+            raise ParameterError(f"block {self.name!r} parameter 'mass' must be positive, "
+                                 f"got {np.asarray(mass).tolist()}", block=self.name)
+        self._n = n
+        self.declare_input("tau", (n,))
+        self.declare_input("tau_star", (n,), optional=True)
+        self.declare_output("q", (n,), feedthrough=())
+        self.declare_output("qdot", (n,), feedthrough=())
+        self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
+                                                  _vector_param(self, "qdot0", qdot0, n)]))
+        self.set_param("inv_mass", 1.0 / m)
+
+    def output(self, t, x, u):
+        n = self._n
+        return x[:, :n], x[:, n:]
+
+    def derivative(self, t, x, u):
+        n = self._n
+        qddot = (u[0] + u[1]) * self.p.inv_mass
+        dx = np.empty((max(x.shape[0], qddot.shape[0]), 2 * n))
+        dx[:, :n] = x[:, n:]
+        dx[:, n:] = qddot
+        return dx
+
+
+@register
+class PointMassRegressor(Block):
+    """Point-mass regressor Y = diag(zetad), so that diag(m) zetad = Y theta with theta = m.
+
+    Property 3 for the ``PointMass`` plant (C = 0, g = 0): one parameter per axis, the n
+    masses (``PointMass.parameter_vector``), also when the plant's mass is a shared scalar.
+    ``q`` and ``qdot`` are optional and unused; they make the ports those of ``Regressor``
+    so a diagram can swap plants.
+
+    Ports:
+        | port  | direction | shape  | feedthrough |
+        | q     | in        | (n,)   | -           |
+        | qdot  | in        | (n,)   | -           |
+        | zeta  | in        | (n,)   | -           |
+        | zetad | in        | (n,)   | -           |
+        | Y     | out       | (n, n) | zetad       |
+
+    Parameters:
+        n: number of axes.
+    """
+
+    params = {"n": Param("int", 1, "number of axes")}
+    example = {"n": 3}
+
+    def setup(self, n):
+        if n < 1:
+            raise ParameterError(f"block {self.name!r} parameter 'n' must be at least 1, got {n}",
+                                 block=self.name)
+        self._n = self.require_size("n", n, 1000)
+        self._diag = np.arange(n)
+        self.declare_input("q", (n,), optional=True)
+        self.declare_input("qdot", (n,), optional=True)
+        self.declare_input("zeta", (n,), optional=True)
+        self.declare_input("zetad", (n,))
+        self.declare_output("Y", (n, n), feedthrough=("zetad",))
+
+    def output(self, t, x, u):
+        zetad = u[3]
+        Y = np.zeros((zetad.shape[0], self._n, self._n))
+        Y[:, self._diag, self._diag] = zetad
+        return (Y,)

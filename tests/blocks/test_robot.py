@@ -1,0 +1,283 @@
+"""Robot plants and regressors against independent references (eq. (1), Properties 1-3)."""
+from __future__ import annotations
+
+import copy
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blocks.robot import PointMass, PointMassRegressor, Regressor, TwoLinkArm
+from fwdstep.errors import ParameterError
+
+SLOTINE_LI = dict(m1=1.0, l1=1.0, me=2.0, delta_e=30.0, I1=0.12, lc1=0.5, Ie=0.25, lce=0.6)
+OTHER_ARM = dict(m1=1.5, l1=0.8, me=1.2, delta_e=-20.0, I1=0.05, lc1=0.3, Ie=0.1, lce=0.4)
+
+
+# --------------------------------------------------------------------------- references
+def reference_terms(prm: dict, gravity: float, q, qdot):
+    """H, C, g of the two-link arm written directly from the physical parameters
+    (Slotine & Li, Example 9.2), independently of blocks.robot."""
+    m1, l1, me, I1, lc1, Ie, lce = (prm[k] for k in ("m1", "l1", "me", "I1", "lc1", "Ie", "lce"))
+    de = math.radians(prm["delta_e"])
+    a1 = I1 + m1 * lc1 ** 2 + Ie + me * lce ** 2 + me * l1 ** 2
+    a2 = Ie + me * lce ** 2
+    a3 = me * l1 * lce * math.cos(de)
+    a4 = me * l1 * lce * math.sin(de)
+    c2, s2 = math.cos(q[1]), math.sin(q[1])
+    H = np.array([[a1 + 2 * a3 * c2 + 2 * a4 * s2, a2 + a3 * c2 + a4 * s2],
+                  [a2 + a3 * c2 + a4 * s2, a2]])
+    hh = a3 * s2 - a4 * c2
+    C = np.array([[-hh * qdot[1], -hh * (qdot[0] + qdot[1])], [hh * qdot[0], 0.0]])
+    ce = math.cos(q[0] + q[1] + de)
+    g = np.array([(m1 * lc1 + me * l1) * gravity * math.cos(q[0]) + me * lce * gravity * ce,
+                  me * lce * gravity * ce])
+    dH_dq2 = np.array([[-2 * a3 * s2 + 2 * a4 * c2, -a3 * s2 + a4 * c2],
+                       [-a3 * s2 + a4 * c2, 0.0]])
+    return H, C, g, dH_dq2
+
+
+def potential(prm: dict, gravity: float, q):
+    de = math.radians(prm["delta_e"])
+    return ((prm["m1"] * prm["lc1"] + prm["me"] * prm["l1"]) * gravity * np.sin(q[..., 0])
+            + prm["me"] * prm["lce"] * gravity * np.sin(q[..., 0] + q[..., 1] + de))
+
+
+def rk4(f, x0, dt, steps):
+    x = np.array(x0, dtype=float)
+    for k in range(steps):
+        t = k * dt
+        k1 = f(t, x)
+        k2 = f(t + dt / 2, x + dt / 2 * k1)
+        k3 = f(t + dt / 2, x + dt / 2 * k2)
+        k4 = f(t + dt, x + dt * k3)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def stacked(blocks):
+    """What a batched sweep does: stack every run-time parameter along the batch axis."""
+    clone = copy.copy(blocks[0])
+    clone.p = SimpleNamespace(**{k: np.concatenate([getattr(b.p, k) for b in blocks])
+                                 for k in vars(blocks[0].p)})
+    clone.finalize(len(blocks))
+    return clone
+
+
+def random_states(rng, count):
+    q = rng.uniform(-math.pi, math.pi, (count, 2))
+    qdot = rng.uniform(-3.0, 3.0, (count, 2))
+    zeta = rng.uniform(-3.0, 3.0, (count, 2))
+    zetad = rng.uniform(-10.0, 10.0, (count, 2))
+    return q, qdot, zeta, zetad
+
+
+# --------------------------------------------------------------------------- parameters
+def test_parameter_vector_is_slotine_li():
+    # Slotine & Li, Example 9.2: a1 = 3.34, a2 = 0.97, a3 = 1.04, a4 = 0.6
+    theta = TwoLinkArm.parameter_vector()
+    np.testing.assert_allclose(theta, [3.34, 0.97, 1.2 * math.cos(math.pi / 6), 0.6],
+                               rtol=1e-14)
+    g = 9.81
+    theta_g = TwoLinkArm.parameter_vector(gravity=g)
+    np.testing.assert_allclose(theta_g[4:], [2.5 * g, 1.2 * g * math.cos(math.pi / 6),
+                                             1.2 * g * 0.5], rtol=1e-14)
+    np.testing.assert_array_equal(theta_g[:4], theta)
+    with pytest.raises(ParameterError, match="no parameter 'mass'"):
+        TwoLinkArm.parameter_vector(mass=1.0)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(I1=0.0, Ie=0.0, lc1=0.0), "not positive definite"),
+    (dict(me=-1.0), "'me' must be positive"),
+    (dict(q0=[1.0, 2.0, 3.0]), "'q0'"),
+])
+def test_two_link_arm_rejects_bad_parameters(bad, message):
+    with pytest.raises(ParameterError, match=message):
+        TwoLinkArm("arm", **bad)
+
+
+def test_two_link_arm_ports_and_initial_state():
+    arm = TwoLinkArm("arm", q0=[0.3, -0.4], qdot0=1.5)
+    np.testing.assert_array_equal(arm.x0, [[0.3, -0.4, 1.5, 1.5]])
+    assert arm.inputs["tau_star"].optional and not arm.inputs["tau"].optional
+    assert arm.feedthrough("q") == () and arm.feedthrough("qdot") == ()
+    q, qdot = arm.output(0.0, arm.x0, (np.zeros((1, 2)), np.zeros((1, 2))))
+    np.testing.assert_array_equal(q, [[0.3, -0.4]])
+    np.testing.assert_array_equal(qdot, [[1.5, 1.5]])
+
+
+# --------------------------------------------------------------------------- Properties 1-3
+@pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
+def test_property1_inertia_symmetric_positive_definite(prm):
+    lowest = []
+    for q2 in np.linspace(-math.pi, math.pi, 361):
+        H = reference_terms(prm, 0.0, [0.7, q2], [0.0, 0.0])[0]
+        np.testing.assert_array_equal(H, H.T)
+        lowest.append(np.linalg.eigvalsh(H)[0])
+    assert min(lowest) > 0.05
+
+
+@pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
+def test_property2_hdot_minus_2c_skew_symmetric(prm):
+    rng = np.random.default_rng(2)
+    q, qdot, _, _ = random_states(rng, 100)
+    h = 1e-5
+    for k in range(100):
+        H, C, _, dH_dq2 = reference_terms(prm, 0.0, q[k], qdot[k])
+        Hdot = dH_dq2 * qdot[k, 1]
+        H_plus = reference_terms(prm, 0.0, q[k] + h * qdot[k], qdot[k])[0]
+        H_minus = reference_terms(prm, 0.0, q[k] - h * qdot[k], qdot[k])[0]
+        np.testing.assert_allclose(Hdot, (H_plus - H_minus) / (2 * h), rtol=0, atol=1e-8)
+        N = Hdot - 2 * C
+        np.testing.assert_allclose(N + N.T, 0.0, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("gravity", [0.0, 9.81])
+@pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
+def test_property3_regressor_times_theta_equals_dynamics(prm, gravity):
+    rng = np.random.default_rng(3)
+    q, qdot, zeta, zetad = random_states(rng, 100)
+    reg = Regressor("Y", gravity=gravity)
+    theta = TwoLinkArm.parameter_vector(**prm, gravity=gravity)
+    assert reg.outputs["Y"].shape == (2, theta.size) == (2, 7 if gravity else 4)
+    (Y,) = reg.output(0.0, None, (q, qdot, zeta, zetad))       # one batch of 100
+    assert Y.shape == (100, 2, theta.size)
+    for k in range(100):
+        H, C, g, _ = reference_terms(prm, gravity, q[k], qdot[k])
+        np.testing.assert_allclose(Y[k] @ theta, H @ zetad[k] + C @ zeta[k] + g,
+                                   rtol=0, atol=1e-12)
+        (Yk,) = reg.output(0.0, None, (q[k:k + 1], qdot[k:k + 1], zeta[k:k + 1],
+                                       zetad[k:k + 1]))
+        np.testing.assert_array_equal(Yk[0], Y[k])
+
+
+def test_regressor_broadcasts_batch_one_inputs():
+    rng = np.random.default_rng(4)
+    q, qdot, zeta, zetad = random_states(rng, 5)
+    reg = Regressor("Y", gravity=1.0)
+    (Y,) = reg.output(0.0, None, (q[:1], qdot, zeta[:1], zetad))
+    (Y_full,) = reg.output(0.0, None, (np.repeat(q[:1], 5, 0), qdot,
+                                       np.repeat(zeta[:1], 5, 0), zetad))
+    np.testing.assert_array_equal(Y, Y_full)
+
+
+# --------------------------------------------------------------------------- eq. (1)
+@pytest.mark.parametrize("gravity", [0.0, 9.81])
+@pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
+def test_derivative_matches_linear_solve(prm, gravity):
+    rng = np.random.default_rng(5)
+    q, qdot, _, _ = random_states(rng, 100)
+    tau = rng.normal(0.0, 10.0, (100, 2))
+    tau_star = rng.normal(0.0, 3.0, (100, 2))
+    arm = TwoLinkArm("arm", **prm, gravity=gravity)
+    x = np.hstack([q, qdot])
+    dx = arm.derivative(0.0, x, (tau, tau_star))
+    assert dx.shape == (100, 4)
+    np.testing.assert_array_equal(dx[:, :2], qdot)
+    for k in range(100):
+        H, C, g, _ = reference_terms(prm, gravity, q[k], qdot[k])
+        qddot = np.linalg.solve(H, tau[k] + tau_star[k] - C @ qdot[k] - g)
+        np.testing.assert_allclose(dx[k, 2:], qddot, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("gravity", [0.0, 9.81])
+def test_energy_conserved_without_torque(gravity):
+    """tau = 0: d/dt (0.5 qdot^T H qdot + P(q)) = qdot^T (Hdot/2 - C) qdot = 0 (Property 2)."""
+    prm = SLOTINE_LI
+    arm = TwoLinkArm("arm", **prm, gravity=gravity)
+    rng = np.random.default_rng(6)
+    x0 = np.hstack([rng.uniform(-math.pi, math.pi, (8, 2)), rng.uniform(-2, 2, (8, 2))])
+    zero = (np.zeros((1, 2)), np.zeros((1, 2)))
+
+    def energy(x):
+        e = np.empty(x.shape[0])
+        for k in range(x.shape[0]):
+            H = reference_terms(prm, gravity, x[k, :2], x[k, 2:])[0]
+            e[k] = 0.5 * x[k, 2:] @ H @ x[k, 2:]
+        return e + potential(prm, gravity, x[:, :2])
+
+    drift = {}
+    for dt in (2e-3, 1e-3):                                    # 2 s, 8 arms at once
+        x = rk4(lambda t, x: arm.derivative(t, x, zero), x0, dt, round(2.0 / dt))
+        assert np.max(np.abs(x[:, 2:] - x0[:, 2:])) > 0.1    # the arms really moved
+        e0 = energy(x0)
+        drift[dt] = np.max(np.abs(energy(x) - e0) / np.maximum(np.abs(e0), 1.0))
+    # measured: 1.8e-12 (horizontal), 1.5e-8 (vertical) at dt = 1e-3, shrinking ~20x per
+    # halving of dt: the only energy error is RK4's, so the model conserves energy exactly.
+    assert drift[1e-3] < (1e-11 if gravity == 0.0 else 1e-7)
+    assert drift[2e-3] / drift[1e-3] > 10.0
+
+
+def test_batched_parameters_equal_separate_calls():
+    rng = np.random.default_rng(7)
+    arms = [TwoLinkArm("arm", **SLOTINE_LI), TwoLinkArm("arm", **OTHER_ARM, gravity=9.81),
+            TwoLinkArm("arm", **SLOTINE_LI, gravity=-3.0)]
+    batch = stacked(arms)
+    x = rng.normal(size=(3, 4))
+    tau = rng.normal(size=(3, 2))
+    tau_star = rng.normal(size=(3, 2))
+    dx = batch.derivative(0.0, x, (tau, tau_star))
+    outs = batch.output(0.0, x, (tau, tau_star))
+    for k, arm in enumerate(arms):
+        u = (tau[k:k + 1], tau_star[k:k + 1])
+        np.testing.assert_allclose(dx[k], arm.derivative(0.0, x[k:k + 1], u)[0],
+                                   rtol=1e-15, atol=0)
+        for got, want in zip(outs, arm.output(0.0, x[k:k + 1], u)):
+            np.testing.assert_array_equal(got[k], want[0])
+    # an unbatched input (tau_star unconnected: zeros of batch 1) broadcasts
+    dx0 = batch.derivative(0.0, x, (tau, np.zeros((1, 2))))
+    for k, arm in enumerate(arms):
+        np.testing.assert_allclose(
+            dx0[k], arm.derivative(0.0, x[k:k + 1], (tau[k:k + 1], np.zeros((1, 2))))[0],
+            rtol=1e-15, atol=0)
+
+
+# --------------------------------------------------------------------------- point masses
+def test_point_mass_infers_axes_and_solves_constant_force():
+    pm = PointMass("pm", mass=[1.0, 2.0, 4.0], q0=[1.0, 0.0, -1.0], qdot0=0.5)
+    assert pm.n_states == 6 and pm.inputs["tau"].shape == (3,)
+    assert pm.inputs["tau_star"].optional
+    assert pm.feedthrough("q") == () and pm.feedthrough("qdot") == ()
+    tau = np.array([[2.0, -2.0, 1.0]])
+    tau_star = np.array([[0.0, 1.0, 3.0]])
+    x = rk4(lambda t, x: pm.derivative(t, x, (tau, tau_star)), pm.x0, 0.01, 100)  # t = 1
+    acc = (tau + tau_star)[0] / np.array([1.0, 2.0, 4.0])
+    np.testing.assert_allclose(x[0, :3], np.array([1.0, 0.0, -1.0]) + 0.5 + 0.5 * acc,
+                               rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(x[0, 3:], 0.5 + acc, rtol=1e-13, atol=1e-13)
+    q, qdot = pm.output(1.0, x, (tau, tau_star))
+    np.testing.assert_array_equal(np.hstack([q, qdot]), x)
+
+
+def test_point_mass_shared_scalar_mass_and_batch():
+    pms = [PointMass("pm", mass=2.0, n=2), PointMass("pm", mass=[1.0, 5.0])]
+    batch = stacked(pms)
+    x = np.arange(8.0).reshape(2, 4)
+    tau = np.array([[1.0, 2.0], [3.0, 4.0]])
+    dx = batch.derivative(0.0, x, (tau, np.zeros((1, 2))))
+    np.testing.assert_array_equal(dx, [[2.0, 3.0, 0.5, 1.0], [6.0, 7.0, 3.0, 0.8]])
+    np.testing.assert_array_equal(PointMass.parameter_vector(mass=2.0, n=2), [2.0, 2.0])
+    with pytest.raises(ParameterError, match="'mass' must be positive"):
+        PointMass("pm", mass=[1.0, 0.0])
+    with pytest.raises(ParameterError, match="'mass'"):
+        PointMass("pm", mass=[1.0, 2.0], n=3)
+
+
+def test_point_mass_regressor_property3():
+    rng = np.random.default_rng(8)
+    masses = np.array([0.5, 2.0, 3.0])
+    pm = PointMass("pm", mass=masses)
+    reg = PointMassRegressor("Y", n=3)
+    assert reg.feedthrough("Y") == ("zetad",)
+    assert list(reg.inputs) == list(Regressor("Y2").inputs)
+    zetad = rng.normal(size=(10, 3))
+    zeros = np.zeros((1, 3))
+    (Y,) = reg.output(0.0, None, (zeros, zeros, zeros, zetad))
+    theta = PointMass.parameter_vector(mass=masses)
+    np.testing.assert_allclose(np.einsum("bij,j->bi", Y, theta), zetad * masses, rtol=1e-15)
+    # and the plant agrees: with tau = Y theta, qddot = zetad
+    x = np.zeros((10, 6))
+    dx = pm.derivative(0.0, x, (np.einsum("bij,j->bi", Y, theta), zeros))
+    np.testing.assert_allclose(dx[:, 3:], zetad, rtol=1e-15)
