@@ -1,0 +1,24 @@
+"""fwdstep: block-diagram simulation of forwardstepping control of robot manipulators.
+
+Python API::
+
+    import fwdstep
+    d = fwdstep.load_diagram("diagrams/theorem1.yaml", overrides={"ell": 3})
+    r = fwdstep.simulate(d)
+    r.t, r["err.y"], r.metrics()
+"""
+from .compiler import CompiledDiagram, compile_batch, load_diagram
+from .errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, DiagramError,
+                     DivergenceError, ExpressionError, FwdstepError, OutputError, ParameterError,
+                     ShapeError, SimulationError, UnknownBlockTypeError, WiringError, YamlError)
+from .result import Result
+from .simulate import SimulationInterrupted, simulate
+
+__all__ = [
+    "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
+    "FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
+    "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
+    "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
+    "SimulationInterrupted",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,189 @@
+"""Structure -> a frozen, compiled diagram: flat state layout, signal table, schedule.
+
+Everything that can be decided once is decided here: the evaluation order, each block's
+slice of the flat state vector, the integer index of every signal and of every block input,
+the zero signals of unconnected optional inputs, and (for batches) the stacked parameters.
+The simulator then only walks a prepared list.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .block import Block
+from .errors import ConfigError, DiagramError
+from .graph import Structure, build_structure, instantiate
+from .spec import DiagramSpec, load_spec
+
+MAX_TOTAL_STATES = 2_000_000
+
+
+@dataclass
+class Step:
+    """One block in the schedule."""
+    block: Block
+    state: slice | None
+    inputs: tuple          # signal indices, in the block's input order
+    outputs: tuple         # signal indices, in the block's output order
+
+
+@dataclass
+class CompiledDiagram:
+    spec: DiagramSpec
+    structure: Structure
+    batch: int
+    schedule: list                   # Step per block, evaluation order
+    stateful: list                   # Steps of blocks with states
+    n_states: int
+    x0: np.ndarray                   # (batch, n_states), before input-dependent init
+    signal_names: list               # index -> "block.port"
+    signal_shapes: list
+    signal_index: dict               # "block.port" -> index
+    constant_signals: dict           # index -> array (zeros of unconnected optional inputs)
+    logged: list                     # signal names to record
+    variant_parameters: list = field(default_factory=list)   # one dict per batch member
+
+    @property
+    def blocks(self) -> list:
+        return [s.block for s in self.schedule]
+
+    @property
+    def file(self) -> str:
+        return self.spec.file
+
+    def resolve(self, name: str) -> str:
+        """Signal name after subsystem aliases ('plant.q' -> 'plant/arm.q')."""
+        return self.spec.aliases.get(name, name)
+
+    def state_owner(self, index: int) -> tuple:
+        for step in self.stateful:
+            if step.state.start <= index < step.state.stop:
+                return step.block, index - step.state.start
+        return None, index
+
+
+def structure_signature(blocks: list) -> tuple:
+    """What must be equal for variants to share one batched run."""
+    sig = []
+    for b in blocks:
+        sig.append((b.name, type(b).__name__, b.n_states,
+                    tuple((p.name, p.shape) for p in b.inputs.values()),
+                    tuple((p.name, p.shape) for p in b.outputs.values()),
+                    tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items()))))
+    return tuple(sig)
+
+
+def stack_blocks(variants: list) -> list:
+    """Stack the numeric parameters of structurally identical block lists along the batch axis.
+
+    Returns the first variant's blocks with ``p`` arrays of leading length B (or 1 where all
+    variants agree) and ``x0`` of shape (B, n)."""
+    first = variants[0]
+    B = len(variants)
+    for blocks in variants[1:]:
+        if structure_signature(blocks) != structure_signature(first):
+            raise ConfigError("variants of a batch differ in structure (a parameter changes "
+                              "a shape or a state size); run them in separate batches")
+    for k, blk in enumerate(first):
+        for name, arr in list(vars(blk.p).items()):
+            vals = [vars(v[k].p)[name] for v in variants]
+            if all(np.array_equal(vals[0], v) for v in vals[1:]):
+                continue
+            setattr(blk.p, name, np.concatenate(vals, axis=0))
+        x0s = [v[k].x0 for v in variants]
+        blk.x0 = np.concatenate(x0s, axis=0) if B > 1 else x0s[0]
+        blk.finalize(B)
+    return first
+
+
+def compile_spec(spec: DiagramSpec) -> CompiledDiagram:
+    return compile_structure(build_structure(spec), 1, [spec.parameters])
+
+
+def compile_batch(specs: list) -> CompiledDiagram:
+    """One compiled diagram integrating ``len(specs)`` structurally identical variants."""
+    variants = [instantiate(s) for s in specs]
+    blocks = stack_blocks(variants)
+    structure = build_structure(specs[0], blocks)
+    return compile_structure(structure, len(specs), [s.parameters for s in specs])
+
+
+def compile_structure(structure: Structure, batch: int, params: list) -> CompiledDiagram:
+    spec = structure.spec
+    names, shapes, index = [], [], {}
+    for blk in structure.blocks:
+        for port in blk.outputs.values():
+            key = f"{blk.name}.{port.name}"
+            index[key] = len(names)
+            names.append(key)
+            shapes.append(port.shape)
+    constants = {}
+    schedule, stateful = [], []
+    offset = 0
+    for blk in structure.blocks:
+        ins = []
+        for port in blk.inputs.values():
+            drv = structure.drivers.get((blk.name, port.name))
+            if drv is None:   # optional, unconnected: a zero signal of its own
+                idx = len(names)
+                names.append(f"{blk.name}.{port.name}(zero)")
+                shapes.append(port.shape)
+                constants[idx] = np.zeros((1,) + port.shape)
+                ins.append(idx)
+            else:
+                ins.append(index[f"{drv[0]}.{drv[1]}"])
+        outs = tuple(index[f"{blk.name}.{p}"] for p in blk.outputs)
+        sl = None
+        if blk.n_states:
+            sl = slice(offset, offset + blk.n_states)
+            offset += blk.n_states
+            if offset > MAX_TOTAL_STATES:
+                raise ConfigError(f"the diagram has more than {MAX_TOTAL_STATES} states",
+                                  file=spec.file)
+        step = Step(blk, sl, tuple(ins), outs)
+        schedule.append(step)
+        if sl is not None:
+            stateful.append(step)
+    x0 = np.zeros((batch, offset))
+    for step in stateful:
+        x0[:, step.state] = np.broadcast_to(step.block.x0, (batch, step.block.n_states))
+    logged = _logged_signals(spec, index)
+    return CompiledDiagram(spec=spec, structure=structure, batch=batch, schedule=schedule,
+                           stateful=stateful, n_states=offset, x0=x0, signal_names=names,
+                           signal_shapes=shapes, signal_index=index, constant_signals=constants,
+                           logged=logged, variant_parameters=params)
+
+
+def _logged_signals(spec: DiagramSpec, index: dict) -> list:
+    wanted = list(spec.log) if spec.log is not None else list(index)
+    for panels in spec.plots.values():
+        for panel in panels:
+            wanted.extend(panel)
+    if "error" in spec.metrics:
+        wanted.append(spec.metrics["error"])
+    out = []
+    for name in wanted:
+        real = spec.aliases.get(name, name)
+        if real not in index:
+            blk = real.rsplit(".", 1)[0]
+            known = sorted({n.rsplit(".", 1)[0] for n in index})
+            if blk in known:
+                ports = [n.rsplit(".", 1)[1] for n in index if n.rsplit(".", 1)[0] == blk]
+                hint = f"; block '{blk}' has outputs: {', '.join(ports)}"
+            else:
+                hint = f"; there is no block '{blk}'"
+            raise ConfigError(f"signal '{name}' (in log/plots/metrics) does not exist{hint}",
+                              file=spec.file, line=spec.lines.get(name))
+        if real not in out:
+            out.append(real)
+    return out
+
+
+def load_diagram(path: str, overrides: dict | None = None) -> CompiledDiagram:
+    """Load, validate and compile a diagram file.  ``overrides`` maps parameter names to values
+    (numbers, lists or expression strings) that replace the file's before anything is built."""
+    return compile_spec(load_spec(path, overrides))
+
+
+__all__ = ["CompiledDiagram", "load_diagram", "compile_batch", "compile_spec", "DiagramError"]

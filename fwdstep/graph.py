@@ -1,0 +1,140 @@
+"""Blocks + connections -> a validated port-level graph and a block evaluation order.
+
+Nodes are ports: ``("out", block, port)`` and ``("in", block, port)``.  Edges: each
+connection (out -> in) and each declared feedthrough (in -> out of the same block).  A
+cycle in this graph is a true algebraic loop and is refused with the whole cycle spelled out.
+The evaluation order of blocks follows from the same graph, computed once here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import networkx as nx
+
+from .block import Block, shape_str
+from .errors import AlgebraicLoopError, DiagramError, ParameterError, ShapeError, WiringError
+from .spec import DiagramSpec
+
+
+@dataclass
+class Structure:
+    spec: DiagramSpec
+    blocks: list          # Block instances in evaluation order
+    drivers: dict         # (block, in_port) -> (block, out_port)
+    graph: nx.DiGraph
+
+
+def instantiate(spec: DiagramSpec) -> list:
+    blocks = []
+    for entry in spec.blocks:
+        try:
+            blk = entry.cls(entry.name, **entry.params)
+        except DiagramError as exc:
+            line = entry.line
+            # point at the parameter's own line when the message names it
+            for key, kline in entry.key_lines.items():
+                if f"parameter '{key}'" in exc.message:
+                    line = kline
+                    break
+            exc.block = exc.block or entry.name
+            raise exc.located(entry.file, line) from None
+        except (ValueError, TypeError, ArithmeticError, IndexError, KeyError,
+                MemoryError) as exc:
+            # a block's own checks missed this; still one sentence, chained to the cause
+            raise ParameterError(f"block '{entry.name}' ({entry.type_name}) rejected its "
+                                 f"parameters: {type(exc).__name__}: {exc}"[:400],
+                                 file=entry.file, line=entry.line, block=entry.name) from exc
+        blocks.append(blk)
+    return blocks
+
+
+def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
+    blocks = instantiate(spec) if blocks is None else blocks
+    by_name = {b.name: b for b in blocks}
+    entry_of = {e.name: e for e in spec.blocks}
+    drivers: dict = {}
+    where: dict = {}
+    for conn in spec.connections:
+        (sb, sp), (db, dp) = conn.src, conn.dst
+        for blk_name, port, kind in ((sb, sp, "output"), (db, dp, "input")):
+            if blk_name not in by_name:
+                raise WiringError(f"connection '{conn.text}' names block '{blk_name}', which does "
+                                  "not exist", file=conn.file, line=conn.line, block=blk_name)
+            blk = by_name[blk_name]
+            ports = blk.outputs if kind == "output" else blk.inputs
+            if port not in ports:
+                other = blk.inputs if kind == "output" else blk.outputs
+                note = f" ('{port}' is an {'input' if kind == 'output' else 'output'})" \
+                    if port in other else ""
+                raise WiringError(f"block '{blk_name}' has no {kind} port '{port}'{note}; "
+                                  f"{kind} ports are: {', '.join(ports) or '(none)'}",
+                                  file=conn.file, line=conn.line, block=blk_name, port=port)
+        if (db, dp) in drivers:
+            first = where[(db, dp)]
+            raise WiringError(f"input {db}.{dp} is driven twice: by {drivers[(db, dp)][0]}."
+                              f"{drivers[(db, dp)][1]} (line {first}) and by {sb}.{sp}",
+                              file=conn.file, line=conn.line, block=db, port=dp)
+        s_shape = by_name[sb].outputs[sp].shape
+        d_shape = by_name[db].inputs[dp].shape
+        if s_shape != d_shape:
+            raise ShapeError(f"connection {sb}.{sp} -> {db}.{dp}: shapes differ: {sb}.{sp} is "
+                             f"{shape_str(s_shape)}, {db}.{dp} is {shape_str(d_shape)}",
+                             file=conn.file, line=conn.line, block=db, port=dp)
+        drivers[(db, dp)] = (sb, sp)
+        where[(db, dp)] = conn.line
+    for blk in blocks:
+        for port in blk.inputs.values():
+            if (blk.name, port.name) not in drivers and not port.optional:
+                entry = entry_of.get(blk.name)
+                raise WiringError(f"block '{blk.name}' input port '{port.name}' is not connected",
+                                  file=entry.file if entry else spec.file,
+                                  line=entry.line if entry else None, block=blk.name,
+                                  port=port.name)
+
+    g = nx.DiGraph()
+    for blk in blocks:
+        for out in blk.outputs:
+            g.add_node(("out", blk.name, out))
+            for inp in blk.feedthrough(out):
+                g.add_edge(("in", blk.name, inp), ("out", blk.name, out))
+        for inp in blk.inputs:
+            g.add_node(("in", blk.name, inp))
+    for (db, dp), (sb, sp) in drivers.items():
+        g.add_edge(("out", sb, sp), ("in", db, dp))
+    try:
+        cycle = nx.find_cycle(g)
+    except nx.NetworkXNoCycle:
+        cycle = None
+    if cycle:
+        names = [f"{n[1]}.{n[2]}" for n, _ in cycle] + [f"{cycle[0][0][1]}.{cycle[0][0][2]}"]
+        first_block = cycle[0][0][1]
+        entry = entry_of.get(first_block)
+        raise AlgebraicLoopError(
+            "algebraic loop: " + " -> ".join(names) + "; every port on it feeds straight "
+            "through; break it with a block that has state (Integrator, a strictly proper "
+            "TransferFunction)", file=entry.file if entry else spec.file,
+            line=entry.line if entry else None, block=first_block)
+
+    # block-level order: A before B when an output of A reaches B through a feedthrough input
+    bg = nx.DiGraph()
+    index = {b.name: i for i, b in enumerate(blocks)}
+    bg.add_nodes_from(index)
+    for (db, dp), (sb, sp) in drivers.items():
+        if sb != db and any(dp in by_name[db].feedthrough(o) for o in by_name[db].outputs):
+            bg.add_edge(sb, db)
+    try:
+        order = list(nx.lexicographical_topological_sort(bg, key=lambda n: index[n]))
+    except nx.NetworkXUnfeasible:
+        cyc = nx.find_cycle(bg)
+        raise AlgebraicLoopError(
+            "blocks " + " -> ".join(a for a, _ in cyc) + f" -> {cyc[0][0]} form a loop that is "
+            "only broken inside a block whose outputs have different feedthrough; fwdstep "
+            "evaluates each block once per stage, so split that block in two",
+            file=spec.file) from None
+    return Structure(spec=spec, blocks=[by_name[n] for n in order], drivers=drivers, graph=g)
+
+
+def describe_block(blk: Block) -> str:
+    ins = ", ".join(f"{p.name}{shape_str(p.shape)}" for p in blk.inputs.values())
+    outs = ", ".join(f"{p.name}{shape_str(p.shape)}" for p in blk.outputs.values())
+    return f"{blk.name} ({blk.type_name}): in [{ins}] out [{outs}] states {blk.n_states}"

@@ -1,0 +1,78 @@
+"""Figures from a Result, as named in the diagram's ``plots:`` section.
+
+Plotting lives here, in the runner's room, never in blocks.  matplotlib is imported lazily
+(with the Agg backend) so loading and validating diagrams stays fast and headless.
+"""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from .result import Result, atomic_write, safe_path
+
+
+def _pyplot():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def figure_specs(result: Result) -> dict:
+    spec = result.diagram.spec
+    if spec.plots:
+        return spec.plots
+    if "error" in spec.metrics:
+        return {"tracking_error": [[spec.metrics["error"]]]}
+    return {}
+
+
+def plot_result(result: Result, outdir: str, variants: list | None = None) -> list:
+    """Write one PNG per figure into ``outdir``; returns the paths written."""
+    figs = figure_specs(result)
+    if not figs or len(result.t) == 0:
+        return []
+    plt = _pyplot()
+    paths = []
+    for name, panels in figs.items():
+        fig, axes = plt.subplots(len(panels), 1, figsize=(8, 2.6 * len(panels) + 0.6),
+                                 sharex=True, squeeze=False)
+        for ax, panel in zip(axes[:, 0], panels):
+            for sig in panel:
+                _draw(ax, result, sig, variants)
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=7, loc="best", ncol=2)
+            ax.set_ylabel(", ".join(panel) if len(", ".join(panel)) < 40 else panel[0])
+        axes[-1, 0].set_xlabel("t [s]")
+        title = result.diagram.spec.description.strip().splitlines()
+        fig.suptitle(f"{name}" + (f" — {title[0][:80]}" if title else ""), fontsize=10)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=110)
+        plt.close(fig)
+        path = safe_path(outdir, f"{name}.png")
+        atomic_write(path, lambda fh: fh.write(buf.getvalue()), binary=True)
+        paths.append(path)
+    return paths
+
+
+def _draw(ax, result: Result, sig: str, variants):
+    data = result[sig]
+    t = result.t
+    if result.batch == 1:
+        flat = data.reshape(len(t), -1)
+        for i in range(flat.shape[1]):
+            label = sig if flat.shape[1] == 1 else f"{sig}[{_index(data.shape[1:], i)}]"
+            ax.plot(t, flat[:, i], lw=1.0, label=label)
+    else:
+        chosen = variants if variants is not None else range(min(result.batch, 8))
+        for b in chosen:
+            flat = data[:, b].reshape(len(t), -1)
+            norm = np.sqrt(np.sum(flat ** 2, axis=1))
+            ax.plot(t, norm, lw=1.0, label=f"|{sig}| variant {b}")
+
+
+def _index(shape, flat_index):
+    idx = np.unravel_index(flat_index, shape)
+    return ",".join(str(int(i)) for i in idx)

@@ -1,0 +1,164 @@
+"""Simulation results: recorded signals, summary metrics, and safe writing to disk."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+
+import numpy as np
+
+from .errors import OutputError
+
+RESULT_FILE = "result.npz"
+SUMMARY_FILE = "summary.json"
+
+
+class Result:
+    """Time plus named signals of fixed shape.
+
+    ``result.t`` is (T,); ``result["block.port"]`` is (T, *shape) for a single run and
+    (T, B, *shape) for a batch of B variants.  Subsystem port names ('plant.q') work too.
+    """
+
+    def __init__(self, t, signals: dict, diagram=None, status: str = "ok", message: str = "",
+                 wall_time: float = 0.0, steps: int = 0, diverged_at=None):
+        self.t = t
+        self._signals = signals
+        self.diagram = diagram
+        self.status = status
+        self.message = message
+        self.wall_time = wall_time
+        self.steps = steps
+        self.batch = diagram.batch if diagram is not None else 1
+        self.diverged_at = diverged_at
+
+    @property
+    def names(self) -> list:
+        return list(self._signals)
+
+    def _key(self, name: str) -> str:
+        if name in self._signals:
+            return name
+        if self.diagram is not None:
+            real = self.diagram.resolve(name)
+            if real in self._signals:
+                return real
+        raise KeyError(f"signal '{name}' was not recorded; recorded signals are: "
+                       f"{', '.join(self._signals)}")
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        arr = self._signals[self._key(name)]
+        return arr[:, 0] if self.batch == 1 else arr
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self._key(name)
+            return True
+        except KeyError:
+            return False
+
+    def variant(self, b: int) -> dict:
+        return {k: v[:, b] for k, v in self._signals.items()}
+
+    # ------------------------------------------------------------------ metrics
+    def metrics(self) -> dict | list:
+        """Summary metrics of the signal named by ``metrics: error:`` (per variant for a batch).
+
+        |e|(t) is the Euclidean norm over the signal's components. Reported: final |e|,
+        max |e| over the last ``tail`` fraction of the run (default 20%), RMS of |e| over
+        the run, and max |e| over the run.
+        """
+        if self.diagram is None or "error" not in self.diagram.spec.metrics:
+            return {} if self.batch == 1 else [{} for _ in range(self.batch)]
+        e = self._signals[self._key(self.diagram.spec.metrics["error"])]
+        tail = self.diagram.spec.metrics.get("tail", 0.2)
+        out = [error_metrics(self.t, e[:, b], tail) for b in range(self.batch)]
+        return out[0] if self.batch == 1 else out
+
+    # ------------------------------------------------------------------ writing
+    def summary(self) -> dict:
+        d = self.diagram
+        cfg = d.spec.simulation if d is not None else None
+        params = [_jsonable(p) for p in d.variant_parameters] if d is not None else []
+        return {
+            "status": self.status,
+            "message": self.message,
+            "diagram": d.file if d is not None else None,
+            "parameters": params[0] if len(params) == 1 else params,
+            "simulation": {"t_final": cfg.t_final, "step": cfg.step, "solver": cfg.solver,
+                           "log_every": cfg.log_every, "bound": cfg.bound} if cfg else None,
+            "t_reached": float(self.t[-1]) if len(self.t) else None,
+            "steps": int(self.steps),
+            "batch": self.batch,
+            "wall_time_s": round(self.wall_time, 6),
+            "metrics": _jsonable(self.metrics()),
+            "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
+        }
+
+    def save(self, outdir: str, force: bool = False) -> list:
+        """Write ``result.npz`` and ``summary.json`` atomically into ``outdir``."""
+        os.makedirs(outdir, exist_ok=True)
+        arrays = {"t": self.t}
+        for k, v in self._signals.items():
+            arrays[k] = v[:, 0] if self.batch == 1 else v
+        paths = [safe_path(outdir, RESULT_FILE), safe_path(outdir, SUMMARY_FILE)]
+        atomic_write(paths[0], lambda fh: np.savez(fh, **arrays), binary=True)
+        atomic_write(paths[1], lambda fh: fh.write(json.dumps(self.summary(), indent=2)))
+        return paths
+
+
+def error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> dict:
+    if len(t) == 0:
+        return {"final_abs_error": None, "tail_max_abs_error": None, "rms_error": None}
+    norm = np.sqrt(np.sum(e.reshape(len(t), -1) ** 2, axis=1))
+    t_end = t[-1]
+    mask = t >= t[0] + (1 - tail) * (t_end - t[0])
+    return {
+        "final_abs_error": float(norm[-1]),
+        "tail_max_abs_error": float(np.max(norm[mask])),
+        "rms_error": float(np.sqrt(np.mean(norm ** 2))),
+        "max_abs_error": float(np.max(norm)),
+    }
+
+
+def safe_path(outdir: str, name: str) -> str:
+    """``outdir/name``, refusing any name that would leave ``outdir``."""
+    if os.path.basename(name) != name or name in ("", ".", "..") or "\x00" in name:
+        raise OutputError(f"refusing to write '{name}': not a plain file name inside {outdir}")
+    base = os.path.realpath(outdir)
+    path = os.path.realpath(os.path.join(base, name))
+    if os.path.dirname(path) != base:
+        raise OutputError(f"refusing to write '{name}': it resolves outside {outdir}")
+    return path
+
+
+def atomic_write(path: str, write, binary: bool = False) -> None:
+    """Write to a temporary file in the same directory, then rename over ``path``."""
+    directory = os.path.dirname(path)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
+    try:
+        with os.fdopen(fd, "wb" if binary else "w") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    return obj

@@ -1,0 +1,220 @@
+"""The run loop: fixed-step integration of a compiled diagram.
+
+Procedure Step (one step of size h from (t_n, x_n), an s-stage explicit RK tableau)::
+
+    for stage i = 1..s:
+        x_i = x_n + h * sum_{j<i} a_ij k_j              (x_1 = x_n)
+        for block in schedule (fixed at compile time):   # outputs, each block exactly once
+            signals[block.outputs] = block.output(t_n + c_i h, x_i[block], signals[block.inputs])
+        for block with states:                           # derivatives, after all outputs
+            k_i[block] = block.derivative(t_n + c_i h, x_i[block], signals[block.inputs])
+        if i == 1 and n % log_every == 0: record logged signals at t_n   (no extra evaluation)
+    x_{n+1} = x_n + h * sum_i b_i k_i
+    if any |x_{n+1}| > bound or not finite: stop (diverged), keep what was recorded
+
+The final time is recorded with one extra output pass.  Nothing per-run is stored in the
+diagram or its blocks: all buffers live in this function's frame.
+"""
+from __future__ import annotations
+
+import time as _time
+
+import numpy as np
+
+from .compiler import CompiledDiagram
+from .errors import BlockRuntimeError, DivergenceError, SimulationError
+from .result import Result
+from .solvers import TABLEAUX, step_plan
+
+
+class SimulationInterrupted(SimulationError):
+    """The run was interrupted (Ctrl-C); ``result`` holds everything up to ``time``."""
+
+
+def _make_evaluator(d: CompiledDiagram, counters: list | None = None):
+    """Build ``f(t, x, dx) -> None`` (fills dx) and the shared signal list."""
+    sig: list = [None] * len(d.signal_names)
+    for idx, arr in d.constant_signals.items():
+        sig[idx] = arr
+    calls = []
+    for step in d.schedule:
+        outs = step.outputs
+        calls.append((step.block.output, step.state, step.inputs, outs, len(outs)))
+    ders = [(s.block.derivative, s.state, s.inputs) for s in d.stateful]
+    empty = slice(0, 0)
+
+    def outputs(t, x):
+        for fn, sl, ins, outs, n_out in calls:
+            y = fn(t, x[:, sl] if sl is not None else x[:, empty], tuple([sig[i] for i in ins]))
+            if n_out == 1:
+                sig[outs[0]] = y[0]
+            else:
+                for k in range(n_out):
+                    sig[outs[k]] = y[k]
+
+    def f(t, x, dx):
+        outputs(t, x)
+        for fn, sl, ins in ders:
+            dx[:, sl] = fn(t, x[:, sl], tuple([sig[i] for i in ins]))
+
+    return f, outputs, sig
+
+
+def _runtime_error(d: CompiledDiagram, sig, t, x, exc) -> BlockRuntimeError:
+    """Find which block raised (re-running each in order) and describe it."""
+    for step in d.schedule + d.stateful:
+        u = tuple(sig[i] for i in step.inputs)
+        if any(v is None for v in u):
+            continue
+        try:
+            xs = x[:, step.state] if step.state is not None else x[:, 0:0]
+            step.block.output(t, xs, u)
+            if step.state is not None:
+                step.block.derivative(t, xs, u)
+        except Exception as inner:  # noqa: BLE001 - reporting the user's block failure
+            names = list(step.block.inputs)
+            shown = "; ".join(f"{n}={np.array2string(np.asarray(v)[0], precision=4, threshold=12)}"
+                              for n, v in zip(names, u))
+            return BlockRuntimeError(
+                f"block '{step.block.name}' ({step.block.type_name}) raised "
+                f"{type(inner).__name__}: {inner} at t = {t:.6g}; inputs: {shown or '(none)'}",
+                time=t, block=step.block.name)
+    return BlockRuntimeError(f"evaluation failed at t = {t:.6g}: {type(exc).__name__}: {exc}",
+                             time=t)
+
+
+def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
+    """x(0): declared initial values, then blocks that start from their inputs (reference
+    dynamics: z(0) = qdot_d(0) - alpha_ell (q(0) - q_d(0)))."""
+    x = d.x0.copy()
+    needing = [s for s in d.stateful if s.block.init_from_inputs]
+    if not needing:
+        return x
+    _, outputs, sig = _make_evaluator(d)
+    with np.errstate(all="ignore"):
+        for _ in range(len(needing) + 1):
+            outputs(t0, x)
+            for s in needing:
+                u = tuple(sig[i] for i in s.inputs)
+                x[:, s.state] = np.broadcast_to(s.block.initial_state(t0, u),
+                                                (d.batch, s.block.n_states))
+    return x
+
+
+def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) -> Result:
+    """Integrate the compiled diagram over ``simulation.t_final``.
+
+    Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
+    ``DivergenceError``, ``BlockRuntimeError`` or ``SimulationInterrupted`` whose ``result``
+    attribute holds everything recorded up to that time (status 'diverged', 'error',
+    'interrupted').  For a batch (B > 1) a diverging variant is frozen and marked, the
+    others go on.
+    ``progress(fraction)`` is called about once per second of wall time.
+    """
+    cfg = d.spec.simulation
+    tab = TABLEAUX[cfg.solver]
+    h = cfg.step
+    n_steps = cfg.n_steps
+    every = cfg.log_every
+    B, N = d.batch, d.n_states
+    bound = cfg.bound
+    wall0 = _time.perf_counter()
+
+    f, outputs, sig = _make_evaluator(d)
+    x = initial_state(d) if x0 is None else np.array(x0, dtype=float)
+    stages, final = step_plan(tab, h)
+    k = [np.empty((B, N)) for _ in range(tab.stages)]
+
+    n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
+    log_idx = [d.signal_index[name] for name in d.logged]
+    logs = [np.full((n_rows, B) + d.signal_shapes[i], np.nan) for i in log_idx]
+    pairs = list(zip(logs, log_idx))
+    t_log = np.empty(n_rows)
+    row = 0
+    alive = np.ones(B, dtype=bool)
+    died_at = np.full(B, np.nan)
+    status, message, error = "ok", "", None
+    n = 0
+    t = 0.0
+    next_report = wall0 + 1.0
+
+    def record(row, t):
+        t_log[row] = t
+        for L, i in pairs:
+            L[row] = sig[i]
+
+    with np.errstate(all="ignore"):
+        try:
+            for n in range(n_steps):
+                t = n * h
+                f(t, x, k[0])
+                if n % every == 0:
+                    record(row, t)
+                    row += 1
+                for s, (ch, coeffs) in enumerate(stages, start=1):
+                    xi = x.copy()
+                    for j, a in coeffs:
+                        xi += a * k[j]
+                    f(t + ch, xi, k[s])
+                for j, b in final:
+                    x += b * k[j]
+                m = np.abs(x).max(axis=1) if N else np.zeros(B)
+                if not (m <= bound).all():
+                    bad = ~(m <= bound) & alive
+                    died_at[bad] = t + h
+                    alive &= ~bad
+                    if not alive.any():
+                        status = "diverged"
+                        message = _divergence_message(d, x, bound, t + h)
+                        break
+                    x[~alive] = 0.0      # frozen variants: keep the others finite and going
+                if progress is not None and n % 2048 == 0:
+                    now = _time.perf_counter()
+                    if now >= next_report:
+                        progress((n + 1) / n_steps)
+                        next_report = now + 1.0
+            else:
+                t = n_steps * h
+                outputs(t, x)
+                record(row, t)
+                row += 1
+        except KeyboardInterrupt:
+            status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
+            error = SimulationInterrupted(message, time=t)
+        except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
+            error = _runtime_error(d, sig, t, x, exc)
+            error.__cause__ = exc
+            status, message = "error", str(error)
+    if B > 1 and (~alive).any() and status == "ok":
+        status = "partially diverged"
+        message = f"{int((~alive).sum())} of {B} variants diverged"
+    t_out = t_log[:row]
+    signals = {name: L[:row] for name, L in zip(d.logged, logs)}
+    for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
+        for L in signals.values():
+            L[t_out >= died_at[b], b] = np.nan
+    result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
+                    wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
+                    diverged_at=died_at)
+    if status == "diverged":
+        blk, _ = d.state_owner(int(np.argmax(~(np.abs(x) <= bound)) % max(N, 1)))
+        raise DivergenceError(message, time=t + h, block=blk.name if blk else None,
+                              result=result)
+    if error is not None:
+        error.result = result
+        raise error
+    return result
+
+
+def _divergence_message(d: CompiledDiagram, x, bound, t) -> str:
+    bad = np.argwhere(~(np.abs(x) <= bound))
+    b, i = (int(bad[0][0]), int(bad[0][1])) if len(bad) else (0, 0)
+    blk, local = d.state_owner(i)
+    val = x[b, i]
+    labels = getattr(blk, "state_labels", None) if blk is not None else None
+    label = labels[local] if labels and local < len(labels) else f"state[{local}]"
+    what = "is not finite" if not np.isfinite(val) else f"exceeds the bound {bound:g}"
+    who = f"block '{blk.name}' ({blk.type_name})" if blk is not None else "the diagram"
+    variant = f" (variant {b})" if d.batch > 1 else ""
+    return (f"simulation diverged at t = {t:.6g}: {who} {label} = {val:.6g} {what}{variant}; "
+            "results up to that time are kept")

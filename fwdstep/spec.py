@@ -1,0 +1,546 @@
+"""Diagram files -> a flat, evaluated ``DiagramSpec`` (structure only, no numerics).
+
+A diagram file has these top-level keys::
+
+    description:  free text
+    parameters:   name: value            # numbers, lists, or expressions over other parameters
+    blocks:       name: {type: T, ...}   # parameters of the block; or type: subsystem
+    connections:  - "src.out -> dst.in, other.in"
+    ports:        {inputs: {name: blk.in | [blk.in, ...]}, outputs: {name: blk.out}}  # subsystems
+    simulation:   {t_final, step, solver, log_every, bound}
+    log:          [blk.port, ...]
+    plots:        {figure_name: [panel, ...]}   # panel: "blk.port" or [blk.port, ...]
+    metrics:      {error: blk.port}
+
+Subsystems (``type: subsystem``, ``file:``, ``parameters:``) are flattened here, recursively:
+their blocks are renamed ``<subsystem>/<block>`` and their declared ports are wired through.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import (ConfigError, DiagramError, ExpressionError, ParameterError, WiringError,
+                     YamlError)
+from .expressions import evaluate, names_in
+from .registry import lookup
+from .yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
+
+TOP_LEVEL_KEYS = ("description", "parameters", "blocks", "connections", "ports", "simulation",
+                  "log", "plots", "metrics")
+SIMULATION_KEYS = ("t_final", "step", "solver", "log_every", "bound", "backend")
+SOLVER_NAMES = ("euler", "heun", "rk4")
+MAX_STEPS = 50_000_000
+MAX_SUBSYSTEM_DEPTH = 16
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_FIGURE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]{0,63}$")
+
+
+@dataclass
+class BlockEntry:
+    name: str
+    type_name: str
+    cls: type
+    params: dict
+    file: str
+    line: int | None
+    key_lines: dict = field(default_factory=dict)
+
+
+@dataclass
+class Connection:
+    src: tuple
+    dst: tuple
+    file: str
+    line: int | None
+    text: str
+
+
+@dataclass
+class SimulationConfig:
+    t_final: float = 10.0
+    step: float = 1e-3
+    solver: str = "rk4"
+    log_every: int = 1
+    bound: float = 1e8
+    backend: str = "numpy"
+
+    @property
+    def n_steps(self) -> int:
+        return int(round(self.t_final / self.step))
+
+
+@dataclass
+class DiagramSpec:
+    file: str
+    description: str
+    parameters: dict
+    blocks: list
+    connections: list
+    simulation: SimulationConfig
+    log: list | None
+    plots: dict
+    metrics: dict
+    aliases: dict
+    lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
+
+
+# ---------------------------------------------------------------------------- helpers
+def _mapping(value, what: str, file: str, line: int | None) -> LineDict:
+    if value is None:
+        out = LineDict()
+        out.line, out.key_lines = line, {}
+        return out
+    if not isinstance(value, dict):
+        raise ConfigError(f"'{what}' must be a mapping, got {type(value).__name__}", file=file,
+                          line=line)
+    return value
+
+
+def _line(container, key) -> int | None:
+    if isinstance(container, (LineDict, LineList)):
+        return container.line_of(key)
+    return None
+
+
+def evaluate_value(value: Any, namespace: dict, what: str):
+    """Evaluate a YAML value: strings are expressions, lists are evaluated element-wise."""
+    if isinstance(value, str):
+        return evaluate(value, namespace, what)
+    if isinstance(value, list):
+        items = [evaluate_value(v, namespace, what) for v in value]
+        if any(isinstance(v, (bool, np.bool_)) for v in items):
+            raise ExpressionError(f"{what}: a list may contain only numbers")
+        try:
+            return np.array(items, dtype=float)
+        except (ValueError, TypeError):
+            raise ExpressionError(f"{what}: the list is not a rectangular array of numbers"
+                                  ) from None
+    if isinstance(value, dict):
+        raise ExpressionError(f"{what}: a mapping is not a value")
+    if isinstance(value, bool) or value is None:
+        return value
+    if isinstance(value, (int, float)):
+        if not math.isfinite(value):
+            raise ExpressionError(f"{what}: value {value} is not finite")
+        return float(value)
+    return value
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``NAME=VALUE`` from the command line; VALUE is read as a YAML scalar/flow value."""
+    if "=" not in text:
+        raise ConfigError(f"--set '{text}' must have the form NAME=VALUE")
+    name, raw = text.split("=", 1)
+    name = name.strip()
+    if not _NAME.match(name):
+        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name")
+    try:
+        value = parse_yaml_text(raw) if raw.strip() else None
+    except YamlError:
+        value = raw
+    if value is None:
+        raise ConfigError(f"--set '{text}' has no value")
+    return name, value
+
+
+def resolve_parameters(raw: LineDict, overrides: dict, file: str,
+                       preset: dict | None = None) -> dict:
+    """Evaluate the ``parameters:`` section (any order; references resolved by dependency).
+
+    ``overrides`` replace raw values (``--set``); ``preset`` supplies already-evaluated values
+    (parameters passed into a subsystem by its parent)."""
+    raw = _mapping(raw, "parameters", file, None)
+    for key in raw:
+        if not isinstance(key, str) or not _NAME.match(key):
+            raise ParameterError(f"parameter name '{key}' is not a valid name (letters, digits, _)",
+                                 file=file, line=_line(raw, key))
+    values = dict(raw)
+    for name, value in (overrides or {}).items():
+        if name not in values:
+            known = ", ".join(values) or "(none)"
+            raise ConfigError(f"--set {name}=...: the diagram has no parameter '{name}'; "
+                              f"parameters are: {known}", file=file)
+        values[name] = value
+    namespace: dict = dict(preset or {})
+    pending = {k: v for k, v in values.items() if k not in namespace}
+    while pending:
+        progressed = False
+        for name in list(pending):
+            value = pending[name]
+            deps = set()
+            for text in _strings_in(value):
+                deps |= names_in(text)
+            if deps & set(pending) - {name}:
+                continue
+            try:
+                namespace[name] = evaluate_value(value, namespace, f"parameter '{name}'")
+            except DiagramError as exc:
+                raise exc.located(file, _line(raw, name)) from None
+            del pending[name]
+            progressed = True
+        if not progressed:
+            cyc = ", ".join(pending)
+            first = next(iter(pending))
+            raise ExpressionError(f"parameters {cyc} refer to each other in a cycle", file=file,
+                                  line=_line(raw, first))
+    return namespace
+
+
+def _strings_in(value):
+    if isinstance(value, str):
+        yield value
+    elif isinstance(value, list):
+        for v in value:
+            yield from _strings_in(v)
+
+
+def parse_signal(text: Any, what: str, file: str, line: int | None) -> tuple[str, str]:
+    if not isinstance(text, str) or "." not in text:
+        raise ConfigError(f"{what}: '{text}' is not a signal name of the form block.port",
+                          file=file, line=line)
+    block, port = text.strip().rsplit(".", 1)
+    if not block or not port:
+        raise ConfigError(f"{what}: '{text}' is not a signal name of the form block.port",
+                          file=file, line=line)
+    return block, port
+
+
+def _parse_connection(text: Any, file: str, line: int | None):
+    if not isinstance(text, str) or "->" not in text:
+        raise WiringError(f"connection {text!r} must have the form 'block.out -> block.in[, ...]'",
+                          file=file, line=line)
+    left, right = text.split("->", 1)
+    src = parse_signal(left, f"connection '{text}'", file, line)
+    dsts = [parse_signal(part, f"connection '{text}'", file, line)
+            for part in right.split(",") if part.strip()]
+    if not dsts:
+        raise WiringError(f"connection '{text}' has no destination", file=file, line=line)
+    return src, dsts
+
+
+# ---------------------------------------------------------------------------- expansion
+class _Level:
+    """One diagram file being expanded (the top level or a subsystem)."""
+
+    def __init__(self, doc: LineDict, file: str, namespace: dict, prefix: str, stack: tuple):
+        self.doc, self.file, self.ns, self.prefix, self.stack = doc, file, namespace, prefix, stack
+        self.blocks: list[BlockEntry] = []
+        self.connections: list[Connection] = []
+        self.local_blocks: dict[str, str] = {}        # local name -> "block" | "subsystem"
+        self.sub_inputs: dict[str, dict] = {}         # subsystem -> input name -> [(blk, port)]
+        self.sub_outputs: dict[str, dict] = {}        # subsystem -> output name -> (blk, port)
+        self.aliases: dict[str, str] = {}
+
+    def full(self, local: str) -> str:
+        return f"{self.prefix}{local}"
+
+    def expand(self):
+        doc, file = self.doc, self.file
+        blocks = doc.get("blocks")
+        if blocks is None:
+            raise ConfigError("the diagram has no 'blocks:' section", file=file, line=doc.line)
+        blocks = _mapping(blocks, "blocks", file, _line(doc, "blocks"))
+        if not blocks:
+            raise ConfigError("'blocks:' is empty", file=file, line=_line(doc, "blocks"))
+        for name, body in blocks.items():
+            line = _line(blocks, name)
+            if not isinstance(name, str) or not _NAME.match(name):
+                raise ConfigError(f"block name '{name}' is not valid (letters, digits and _, not "
+                                  "starting with a digit)", file=file, line=line)
+            if not isinstance(body, dict):
+                raise ConfigError(f"block '{name}' must be a mapping with a 'type:' key",
+                                  file=file, line=line)
+            if "type" not in body:
+                raise ConfigError(f"block '{name}' has no 'type:'", file=file, line=line)
+            if body["type"] == "subsystem":
+                self._expand_subsystem(name, body, line)
+            else:
+                self._add_block(name, body, line)
+        self._connections()
+
+    def _add_block(self, name: str, body: LineDict, line):
+        file = self.file
+        type_name = body["type"]
+        try:
+            cls = lookup(str(type_name))
+        except DiagramError as exc:
+            raise exc.located(file, _line(body, "type")) from None
+        params = {}
+        key_lines = {}
+        for key, value in body.items():
+            if key == "type":
+                continue
+            key_lines[key] = _line(body, key)
+            decl = cls.params.get(key)
+            if decl is None:
+                valid = ", ".join(cls.params) or "(none)"
+                raise ParameterError(f"block '{self.full(name)}' ({type_name}) has no parameter "
+                                     f"'{key}'; valid parameters are: {valid}", file=file,
+                                     line=key_lines[key], block=self.full(name))
+            if decl.kind in ("str", "choice"):
+                params[key] = value
+            elif decl.kind == "bool" and isinstance(value, bool):
+                params[key] = value
+            else:
+                try:
+                    params[key] = evaluate_value(value, self.ns,
+                                                 f"block '{self.full(name)}' parameter '{key}'")
+                except DiagramError as exc:
+                    raise exc.located(file, key_lines[key]) from None
+        self.local_blocks[name] = "block"
+        self.blocks.append(BlockEntry(self.full(name), str(type_name), cls, params, file, line,
+                                      key_lines))
+
+    def _expand_subsystem(self, name: str, body: LineDict, line):
+        file = self.file
+        allowed = ("type", "file", "parameters")
+        for key in body:
+            if key not in allowed:
+                raise ParameterError(f"subsystem '{self.full(name)}' has no key '{key}'; keys are: "
+                                     f"{', '.join(allowed)}", file=file, line=_line(body, key))
+        if "file" not in body or not isinstance(body["file"], str):
+            raise ConfigError(f"subsystem '{self.full(name)}' needs 'file:' (a path to a diagram)",
+                              file=file, line=line)
+        path = os.path.normpath(os.path.join(os.path.dirname(file), body["file"]))
+        if os.path.abspath(path) in self.stack:
+            chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
+            raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
+                              file=file, line=_line(body, "file"))
+        if len(self.stack) >= MAX_SUBSYSTEM_DEPTH:
+            raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
+                              file=file, line=line)
+        child_doc = _read_document(path)
+        passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
+        overrides = {}
+        for key, value in passed.items():
+            try:
+                overrides[key] = evaluate_value(value, self.ns,
+                                                f"subsystem '{self.full(name)}' parameter '{key}'")
+            except DiagramError as exc:
+                raise exc.located(file, _line(passed, key)) from None
+        child_params = child_doc.get("parameters") or {}
+        for key in overrides:
+            if key not in child_params:
+                known = ", ".join(child_params) or "(none)"
+                raise ParameterError(f"subsystem '{self.full(name)}' ({body['file']}) has no "
+                                     f"parameter '{key}'; parameters are: {known}", file=file,
+                                     line=_line(passed, key))
+        ns = resolve_parameters(child_params, {}, path, preset=overrides)
+        child = _Level(child_doc, path, ns, f"{self.full(name)}/",
+                       self.stack + (os.path.abspath(path),))
+        child.expand()
+        ports = _mapping(child_doc.get("ports"), "ports", path, _line(child_doc, "ports"))
+        ins = _mapping(ports.get("inputs"), "ports.inputs", path, _line(ports, "inputs"))
+        outs = _mapping(ports.get("outputs"), "ports.outputs", path, _line(ports, "outputs"))
+        self.sub_inputs[name] = {}
+        for pname, targets in ins.items():
+            tl = targets if isinstance(targets, list) else [targets]
+            resolved = []
+            for tgt in tl:
+                blk, port = parse_signal(tgt, f"subsystem input '{pname}'", path, _line(ins, pname))
+                resolved.extend(child.resolve_dst(blk, port, path, _line(ins, pname)))
+            self.sub_inputs[name][pname] = resolved
+        self.sub_outputs[name] = {}
+        for pname, source in outs.items():
+            blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
+            src = child.resolve_src(blk, port, path, _line(outs, pname))
+            self.sub_outputs[name][pname] = src
+            self.aliases[f"{self.full(name)}.{pname}"] = f"{src[0]}.{src[1]}"
+        self.aliases.update(child.aliases)
+        self.blocks.extend(child.blocks)
+        self.connections.extend(child.connections)
+        self.local_blocks[name] = "subsystem"
+
+    def resolve_src(self, blk: str, port: str, file, line) -> tuple:
+        kind = self.local_blocks.get(blk)
+        if kind == "subsystem":
+            outs = self.sub_outputs[blk]
+            if port not in outs:
+                raise WiringError(f"subsystem '{self.full(blk)}' has no output port '{port}'; "
+                                  f"output ports are: {', '.join(outs) or '(none)'}", file=file,
+                                  line=line, block=self.full(blk), port=port)
+            return outs[port]
+        if kind is None:
+            raise self._no_block(blk, file, line)
+        return (self.full(blk), port)
+
+    def resolve_dst(self, blk: str, port: str, file, line) -> list:
+        kind = self.local_blocks.get(blk)
+        if kind == "subsystem":
+            ins = self.sub_inputs[blk]
+            if port not in ins:
+                raise WiringError(f"subsystem '{self.full(blk)}' has no input port '{port}'; "
+                                  f"input ports are: {', '.join(ins) or '(none)'}", file=file,
+                                  line=line, block=self.full(blk), port=port)
+            return ins[port]
+        if kind is None:
+            raise self._no_block(blk, file, line)
+        return [(self.full(blk), port)]
+
+    def _no_block(self, blk, file, line):
+        import difflib
+        names = list(self.local_blocks)
+        close = difflib.get_close_matches(blk, names, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else f"; blocks are: {', '.join(names)}"
+        return WiringError(f"connection names block '{blk}', which does not exist{hint}",
+                           file=file, line=line, block=blk)
+
+    def _connections(self):
+        doc, file = self.doc, self.file
+        conns = doc.get("connections")
+        if conns is None:
+            return
+        if not isinstance(conns, list):
+            raise ConfigError("'connections:' must be a list of 'src.out -> dst.in' strings",
+                              file=file, line=_line(doc, "connections"))
+        for i, text in enumerate(conns):
+            line = _line(conns, i)
+            (sb, sp), dsts = _parse_connection(text, file, line)
+            src = self.resolve_src(sb, sp, file, line)
+            for db, dp in dsts:
+                for dst in self.resolve_dst(db, dp, file, line):
+                    self.connections.append(Connection(src, dst, file, line, text))
+
+
+def _read_document(path: str) -> LineDict:
+    doc = read_yaml_file(path)
+    if doc is None:
+        raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
+                        file=path)
+    if not isinstance(doc, dict):
+        raise YamlError(f"the top level must be a mapping (blocks:, connections:, ...), got a "
+                        f"{type(doc).__name__}", file=path, line=getattr(doc, "line", 1))
+    for key in doc:
+        if key not in TOP_LEVEL_KEYS:
+            import difflib
+            close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise ConfigError(f"unknown top-level key '{key}'{hint} (valid keys: "
+                              f"{', '.join(TOP_LEVEL_KEYS)})", file=path, line=_line(doc, key))
+    return doc
+
+
+def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
+    raw = _mapping(doc.get("simulation"), "simulation", file, _line(doc, "simulation"))
+    cfg = SimulationConfig()
+    for key in raw:
+        if key not in SIMULATION_KEYS:
+            raise ConfigError(f"simulation has no setting '{key}'; settings are: "
+                              f"{', '.join(SIMULATION_KEYS)}", file=file, line=_line(raw, key))
+
+    def number(key):
+        try:
+            v = evaluate_value(raw[key], ns, f"simulation.{key}")
+        except DiagramError as exc:
+            raise exc.located(file, _line(raw, key)) from None
+        if isinstance(v, bool) or not isinstance(v, float):
+            raise ConfigError(f"simulation.{key} must be a number, got {raw[key]!r}", file=file,
+                              line=_line(raw, key))
+        return v
+
+    if "solver" in raw:
+        if raw["solver"] not in SOLVER_NAMES:
+            raise ConfigError(f"simulation.solver '{raw['solver']}' is unknown; solvers are: "
+                              f"{', '.join(SOLVER_NAMES)}", file=file, line=_line(raw, "solver"))
+        cfg.solver = raw["solver"]
+    if "backend" in raw:
+        if raw["backend"] not in ("numpy", "compiled"):
+            raise ConfigError(f"simulation.backend '{raw['backend']}' is unknown; backends are: "
+                              "numpy, compiled", file=file, line=_line(raw, "backend"))
+        cfg.backend = raw["backend"]
+    if "t_final" in raw:
+        cfg.t_final = number("t_final")
+        if not cfg.t_final > 0 or not math.isfinite(cfg.t_final):
+            raise ConfigError(f"simulation.t_final must be a positive number, got {cfg.t_final:g}",
+                              file=file, line=_line(raw, "t_final"))
+    if "step" in raw:
+        cfg.step = number("step")
+        if not cfg.step > 0 or not math.isfinite(cfg.step):
+            raise ConfigError(f"simulation.step must be a positive finite number, got "
+                              f"{cfg.step:g}", file=file, line=_line(raw, "step"))
+    if cfg.step > cfg.t_final:
+        raise ConfigError(f"simulation.step ({cfg.step:g}) is larger than t_final "
+                          f"({cfg.t_final:g})", file=file, line=_line(raw, "step"))
+    steps = cfg.t_final / cfg.step
+    if steps > MAX_STEPS:
+        raise ConfigError(f"simulation would take {steps:.3g} steps (t_final / step); the limit "
+                          f"is {MAX_STEPS:.0e}", file=file, line=_line(raw, "step"))
+    if abs(steps - round(steps)) > 1e-6 * max(1.0, steps):
+        raise ConfigError(f"simulation.t_final ({cfg.t_final:g}) is not a whole number of steps of "
+                          f"{cfg.step:g}", file=file, line=_line(raw, "t_final"))
+    if "log_every" in raw:
+        v = number("log_every")
+        if v != math.floor(v) or v < 1:
+            raise ConfigError(f"simulation.log_every must be a whole number of steps >= 1, got "
+                              f"{v:g}", file=file, line=_line(raw, "log_every"))
+        cfg.log_every = int(v)
+    if "bound" in raw:
+        cfg.bound = number("bound")
+        if not cfg.bound > 0:
+            raise ConfigError(f"simulation.bound must be positive, got {cfg.bound:g}", file=file,
+                              line=_line(raw, "bound"))
+    return cfg
+
+
+def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
+    """Read, check and flatten a diagram file (and its subsystems)."""
+    path = os.path.normpath(path)
+    doc = _read_document(path)
+    ns = resolve_parameters(doc.get("parameters"), overrides or {}, path)
+    level = _Level(doc, path, ns, "", (os.path.abspath(path),))
+    level.expand()
+    sim = _simulation(doc, ns, path)
+    lines = {}
+    log = doc.get("log")
+    if log is not None:
+        if not isinstance(log, list):
+            raise ConfigError("'log:' must be a list of block.port names", file=path,
+                              line=_line(doc, "log"))
+        for i, name in enumerate(log):
+            parse_signal(name, "log", path, _line(log, i))
+            lines[name] = _line(log, i)
+    plots_raw = _mapping(doc.get("plots"), "plots", path, _line(doc, "plots"))
+    plots = {}
+    for fig, panels in plots_raw.items():
+        fline = _line(plots_raw, fig)
+        if not isinstance(fig, str) or not _FIGURE.match(fig):
+            raise ConfigError(f"plot name '{fig}' must be letters, digits, '_' or '-' (it becomes "
+                              "a file name)", file=path, line=fline)
+        if isinstance(panels, str):
+            panels = [panels]
+        if not isinstance(panels, list) or not panels:
+            raise ConfigError(f"plot '{fig}' must be a list of panels", file=path, line=fline)
+        out = []
+        for panel in panels:
+            sigs = panel if isinstance(panel, list) else [panel]
+            for s in sigs:
+                parse_signal(s, f"plot '{fig}'", path, fline)
+                lines.setdefault(s, fline)
+            out.append([str(s) for s in sigs])
+        plots[fig] = out
+    metrics_raw = _mapping(doc.get("metrics"), "metrics", path, _line(doc, "metrics"))
+    metrics = {}
+    for key, value in metrics_raw.items():
+        if key not in ("error", "tail"):
+            raise ConfigError(f"metrics has no setting '{key}'; settings are: error, tail",
+                              file=path, line=_line(metrics_raw, key))
+        if key == "error":
+            parse_signal(value, "metrics.error", path, _line(metrics_raw, key))
+            lines.setdefault(value, _line(metrics_raw, key))
+            metrics["error"] = value
+        else:
+            v = evaluate_value(value, ns, "metrics.tail")
+            if not isinstance(v, float) or not 0 < v <= 1:
+                raise ConfigError("metrics.tail must be a fraction in (0, 1]", file=path,
+                                  line=_line(metrics_raw, key))
+            metrics["tail"] = v
+    return DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
+                       blocks=level.blocks, connections=level.connections, simulation=sim,
+                       log=list(log) if log is not None else None, plots=plots, metrics=metrics,
+                       aliases=level.aliases, lines=lines)

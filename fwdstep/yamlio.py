@@ -1,0 +1,175 @@
+"""Safe YAML reading for diagram files.
+
+Built on ``yaml.SafeLoader`` (no Python tags, no code), plus what PyYAML does not do:
+duplicate keys are refused (PyYAML silently keeps the last), every mapping and list remembers
+the line it came from (for error messages), alias/anchor expansion is bounded ("billion
+laughs" refused before anything is expanded), and files larger than ``MAX_FILE_BYTES`` are
+refused before they are read.
+"""
+from __future__ import annotations
+
+import os
+
+import yaml
+
+from .errors import YamlError
+
+MAX_FILE_BYTES = 1 << 20          # 1 MiB: a diagram is text written by a person
+MAX_EXPANDED_NODES = 200_000      # nodes after alias expansion
+
+
+class LineDict(dict):
+    """A dict that remembers its own line and the line of each key (1-based)."""
+
+    line: int | None = None
+    key_lines: dict
+
+    def line_of(self, key) -> int | None:
+        return getattr(self, "key_lines", {}).get(key, self.line)
+
+
+class LineList(list):
+    """A list that remembers its own line and each item's line (1-based)."""
+
+    line: int | None = None
+    item_lines: list
+
+    def line_of(self, index: int) -> int | None:
+        lines = getattr(self, "item_lines", [])
+        return lines[index] if index < len(lines) else self.line
+
+
+class _DiagramLoader(yaml.SafeLoader):
+    pass
+
+
+def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode):
+    seen: dict = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            hash(key)
+        except TypeError:
+            raise YamlError(f"a mapping key must be a plain value, not {type(key).__name__}",
+                            line=key_node.start_mark.line + 1) from None
+        if key in seen:
+            raise YamlError(f"duplicate key '{key}' (first defined at line {seen[key]}); "
+                            "YAML would silently keep only the last one",
+                            line=key_node.start_mark.line + 1)
+        seen[key] = key_node.start_mark.line + 1
+    loader.flatten_mapping(node)
+    out = LineDict()
+    out.line = node.start_mark.line + 1
+    out.key_lines = {}
+    for key_node, value_node in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        out[key] = loader.construct_object(value_node, deep=True)
+        out.key_lines[key] = key_node.start_mark.line + 1
+    return out
+
+
+def _construct_sequence(loader: yaml.SafeLoader, node: yaml.SequenceNode):
+    out = LineList(loader.construct_object(child, deep=True) for child in node.value)
+    out.line = node.start_mark.line + 1
+    out.item_lines = [child.start_mark.line + 1 for child in node.value]
+    return out
+
+
+def _refuse_tag(loader: yaml.SafeLoader, tag_suffix: str, node: yaml.Node):
+    raise YamlError(f"tag '{node.tag}' is not allowed: diagrams may contain only plain YAML "
+                    "(mappings, lists, numbers, strings, booleans)",
+                    line=node.start_mark.line + 1)
+
+
+_DiagramLoader.add_constructor("tag:yaml.org,2002:map", _construct_mapping)
+_DiagramLoader.add_constructor("tag:yaml.org,2002:seq", _construct_sequence)
+_DiagramLoader.add_multi_constructor("", _refuse_tag)
+_DiagramLoader.add_multi_constructor("!", _refuse_tag)
+_DiagramLoader.add_multi_constructor("tag:yaml.org,2002:python/", _refuse_tag)
+for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
+    _DiagramLoader.add_constructor(f"tag:yaml.org,2002:{_tag}",
+                                   lambda loader, node: _refuse_tag(loader, "", node))
+# dates like 2024-01-01 are plain strings here, not datetime objects
+_DiagramLoader.yaml_implicit_resolvers = {
+    k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:timestamp"]
+    for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+
+
+def _expanded_size(node: yaml.Node, memo: dict, limit: int) -> int:
+    key = id(node)
+    if key in memo:
+        return memo[key]
+    memo[key] = limit + 1  # guards against recursive aliases
+    if isinstance(node, yaml.ScalarNode):
+        size = 1
+    elif isinstance(node, yaml.SequenceNode):
+        size = 1
+        for child in node.value:
+            size += _expanded_size(child, memo, limit)
+            if size > limit:
+                break
+    else:
+        size = 1
+        for k, v in node.value:
+            size += _expanded_size(k, memo, limit) + _expanded_size(v, memo, limit)
+            if size > limit:
+                break
+    memo[key] = size
+    return size
+
+
+def parse_yaml_text(text: str, file: str | None = None):
+    """Parse YAML text into LineDict/LineList/scalars, with every safety check."""
+    loader = _DiagramLoader(text)
+    try:
+        try:
+            node = loader.get_single_node()
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise YamlError(f"not valid YAML: {problem}", file=file,
+                            line=mark.line + 1 if mark else None) from None
+        if node is None:
+            return None
+        if _expanded_size(node, {}, MAX_EXPANDED_NODES) > MAX_EXPANDED_NODES:
+            raise YamlError(f"the document expands to more than {MAX_EXPANDED_NODES} nodes "
+                            "through aliases (&anchor/*alias); refused", file=file)
+        try:
+            return loader.construct_document(node)
+        except YamlError as exc:
+            raise exc.located(file) from None
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            raise YamlError(f"not valid YAML: {getattr(exc, 'problem', exc)}", file=file,
+                            line=mark.line + 1 if mark else None) from None
+        except RecursionError:
+            raise YamlError("the document is nested too deeply", file=file) from None
+    finally:
+        loader.dispose()
+
+
+def read_yaml_file(path: str):
+    """Read and parse a diagram file; refuse what is too big before reading it."""
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise YamlError(f"cannot read the file: {exc.strerror}", file=path) from None
+    if os.path.isdir(path):
+        raise YamlError("is a directory, not a diagram file", file=path)
+    if size > MAX_FILE_BYTES:
+        raise YamlError(f"the file is {size} bytes; diagrams are limited to {MAX_FILE_BYTES} "
+                        "bytes", file=path)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_FILE_BYTES + 1)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise YamlError(f"the file is not UTF-8 text (byte {exc.start})", file=path) from None
+    except OSError as exc:
+        raise YamlError(f"cannot read the file: {exc.strerror}", file=path) from None
+    if "\x00" in text:
+        raise YamlError("the file contains NUL bytes; it is not a text file", file=path)
+    return parse_yaml_text(text, file=path)
