@@ -48,7 +48,23 @@ FUNCTIONS = {
     "ones": lambda *s: np.ones(tuple(_size_arg(v) for v in s)),
     "diag": lambda v: np.diag(np.asarray(v, dtype=float)),
     "transpose": lambda a: np.transpose(np.asarray(a, dtype=float)),
+    # polynomials as coefficient vectors, highest power first (numpy.polyval order)
+    "concat": lambda *a: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in a]),
+    "polymul": lambda a, b: np.polymul(np.atleast_1d(a), np.atleast_1d(b)),
+    "polyadd": lambda a, b: np.polyadd(np.atleast_1d(a), np.atleast_1d(b)),
+    "polypow": lambda a, n: _polypow(a, n),
 }
+
+
+def _polypow(a, n):
+    n = _size_arg(n)
+    if n > 200:
+        raise ValueError(f"power {n} is too large (limit 200)")
+    out = np.array([1.0])
+    for _ in range(n):
+        out = np.polymul(out, np.atleast_1d(np.asarray(a, dtype=float)))
+    return out
+
 CONSTANTS = {"pi": math.pi, "e": math.e}
 
 _FORBIDDEN = {
