@@ -57,3 +57,298 @@ class Gain(Block):
         if self._matrix:
             return (np.matmul(u[0][:, None, :], self.p.K_T)[:, 0, :],)
         return (self.p.K_T.reshape((-1,) + (1,) * (u[0].ndim - 1)) * u[0],)
+
+
+#: The largest number of inputs or outputs of one Sum, Mux or Demux.
+MAX_PORTS = 1000
+
+
+def _as_written(value) -> list:
+    """A numeric list for messages: whole numbers without '.0' (YAML [2, 0], not [2.0, 0.0])."""
+    arr = np.asarray(value, dtype=float)
+    if np.all(np.isfinite(arr)) and np.all(arr == np.floor(arr)):
+        return arr.astype(np.int64).tolist()
+    return arr.tolist()
+
+
+def _shape_param(block: Block, key: str, value, ndims: tuple | None = None) -> tuple:
+    """A shape parameter (list of positive whole numbers; [] or None: scalar) -> tuple."""
+    arr = np.atleast_1d(np.asarray([] if value is None else value, dtype=float))
+    if arr.ndim != 1 or np.any(arr < 1) or np.any(arr != np.floor(arr)):
+        raise ParameterError(
+            f"block '{block.name}' parameter '{key}' must be a list of positive whole numbers "
+            f"such as [3] or [2, 3] ([] for a scalar), got {_as_written(value)}",
+            block=block.name)
+    shape = tuple(int(s) for s in arr)
+    if ndims is not None and len(shape) not in ndims:
+        kinds = {0: "a scalar []", 1: "a vector [n]", 2: "a matrix [n, m]"}
+        allowed = " or ".join(kinds[d] for d in ndims)
+        raise ParameterError(
+            f"block '{block.name}' parameter '{key}' must be {allowed}, got {list(shape)}",
+            block=block.name)
+    return shape
+
+
+def _sizes_param(block: Block, value) -> list[int]:
+    sizes = np.atleast_1d(np.asarray(value, dtype=float))
+    if sizes.ndim != 1 or sizes.size == 0 or np.any(sizes < 1) \
+            or np.any(sizes != np.floor(sizes)):
+        raise ParameterError(
+            f"block '{block.name}' parameter 'sizes' must be a non-empty list of positive whole "
+            f"numbers such as [2, 1], got {_as_written(value)}", block=block.name)
+    block.require_size("number of parts", sizes.size, MAX_PORTS)
+    return [int(s) for s in sizes]
+
+
+@register
+class Sum(Block):
+    """Sum: signed sum of k inputs of one shape, one input per sign.
+
+    Equation: y = s_1 u1 + s_2 u2 + ... + s_k uk, s_i = +1 or -1 from ``signs``
+    (e.g. the tracking error e = q - q_d is ``signs: "+-"``).
+
+    Ports (drawn for signs = "+-"; one input u_i per sign):
+        | port | direction | shape | feedthrough |
+        | u1   | in        | shape | -           |
+        | u2   | in        | shape | -           |
+        | y    | out       | shape | u1, u2      |
+
+    Parameters:
+        signs: string of '+' and '-', one character per input, e.g. "+-+".
+        shape: shape of every input and of y (list; [] or omitted for a scalar).
+    """
+
+    params = {
+        "signs": Param("str", doc="one '+' or '-' per input, e.g. \"+-\""),
+        "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar"),
+    }
+    example = {"signs": "+-", "shape": [2]}
+
+    def setup(self, signs, shape):
+        if not signs or set(signs) - {"+", "-"}:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'signs' must be a non-empty string of '+' and "
+                f"'-' such as \"+-\", got {signs!r}", block=self.name)
+        self.require_size("number of inputs", len(signs), MAX_PORTS)
+        shape = _shape_param(self, "shape", shape)
+        for j in range(len(signs)):
+            self.declare_input(f"u{j + 1}", shape)
+        self.declare_output("y", shape)
+        self._first_negative = signs[0] == "-"
+        self._plus = [j for j in range(1, len(signs)) if signs[j] == "+"]
+        self._minus = [j for j in range(1, len(signs)) if signs[j] == "-"]
+
+    def output(self, t, x, u):
+        y = -u[0] if self._first_negative else u[0]
+        for j in self._plus:
+            y = y + u[j]
+        for j in self._minus:
+            y = y - u[j]
+        return (y,)
+
+
+@register
+class Product(Block):
+    """Product: matrix-matrix, matrix-vector or vector-vector product with optional transposes.
+
+    Equation: y = op(a) op(b), op(M) = M or M^T (e.g. Y theta_hat, Y^T s, W W^T e).
+    Vectors follow numpy.matmul: a vector a is a row, a vector b a column, a.b a scalar.
+
+    Ports (drawn for a_shape = [n, p], b_shape = [p]):
+        | port | direction | shape  | feedthrough |
+        | a    | in        | (n, p) | -           |
+        | b    | in        | (p,)   | -           |
+        | y    | out       | (n,)   | a, b        |
+
+    Parameters:
+        a_shape: shape of a, [n] or [n, m].
+        b_shape: shape of b, [n] or [n, m].
+        transpose_a: use a^T (a must be a matrix; default false).
+        transpose_b: use b^T (b must be a matrix; default false).
+    """
+
+    params = {
+        "a_shape": Param("array", doc="shape of a: [n] or [n, m]"),
+        "b_shape": Param("array", doc="shape of b: [n] or [n, m]"),
+        "transpose_a": Param("bool", default=False, doc="multiply by a^T"),
+        "transpose_b": Param("bool", default=False, doc="multiply by b^T"),
+    }
+    example = {"a_shape": [3, 2], "b_shape": [2]}
+
+    def setup(self, a_shape, b_shape, transpose_a, transpose_b):
+        a_shape = _shape_param(self, "a_shape", a_shape, (1, 2))
+        b_shape = _shape_param(self, "b_shape", b_shape, (1, 2))
+        for key, shape, flag in (("a", a_shape, transpose_a), ("b", b_shape, transpose_b)):
+            if flag and len(shape) != 2:
+                raise ParameterError(
+                    f"block '{self.name}' parameter 'transpose_{key}' needs a matrix {key}, "
+                    f"but {key}_shape is {list(shape)}", block=self.name)
+        op_a = a_shape[::-1] if transpose_a else a_shape
+        op_b = b_shape[::-1] if transpose_b else b_shape
+        inner_a, inner_b = op_a[-1], op_b[0]
+        if inner_a != inner_b:
+            ta = "^T" if transpose_a else ""
+            tb = "^T" if transpose_b else ""
+            raise ParameterError(
+                f"block '{self.name}': cannot multiply a{ta} by b{tb}: a_shape {list(a_shape)} "
+                f"gives op(a) of shape {list(op_a)}, b_shape {list(b_shape)} gives op(b) of "
+                f"shape {list(op_b)}, and the inner sizes {inner_a} and {inner_b} differ",
+                block=self.name)
+        self.declare_input("a", a_shape)
+        self.declare_input("b", b_shape)
+        self.declare_output("y", op_a[:-1] + op_b[1:])
+        self._transpose_a = transpose_a
+        self._transpose_b = transpose_b
+        self._kind = (len(a_shape), len(b_shape))
+
+    def output(self, t, x, u):
+        a, b = u
+        if self._transpose_a:
+            a = a.swapaxes(-1, -2)
+        if self._transpose_b:
+            b = b.swapaxes(-1, -2)
+        kind = self._kind
+        if kind == (2, 2):
+            return (np.matmul(a, b),)
+        if kind == (2, 1):
+            return (np.matmul(a, b[:, :, None])[:, :, 0],)
+        if kind == (1, 2):
+            return (np.matmul(a[:, None, :], b)[:, 0, :],)
+        return (np.matmul(a[:, None, :], b[:, :, None])[:, 0, 0],)
+
+
+@register
+class ScalarProduct(Block):
+    """ScalarProduct: a signal of any shape times a time-varying scalar signal.
+
+    Equation: y = k u (e.g. theta_hat_i times a filtered signal in Theorems 8 and 9).
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | k    | in        | ()    | -           |
+        | u    | in        | shape | -           |
+        | y    | out       | shape | k, u        |
+
+    Parameters:
+        shape: shape of u and y (list; [] or omitted for a scalar).
+    """
+
+    params = {"shape": Param("array", default=None, doc="shape of u, e.g. [2] or [2, 5]")}
+    example = {"shape": [2, 3]}
+
+    def setup(self, shape):
+        shape = _shape_param(self, "shape", shape)
+        self.declare_input("k", ())
+        self.declare_input("u", shape)
+        self.declare_output("y", shape)
+        self._expand = (-1,) + (1,) * len(shape)
+
+    def output(self, t, x, u):
+        return (u[0].reshape(self._expand) * u[1],)
+
+
+@register
+class Selector(Block):
+    """Selector: picks elements of a vector, in the given order (repeats allowed).
+
+    Equation: y_j = u_{indices_j} (indices count from 0).
+
+    Ports (drawn for n = 3, two indices):
+        | port | direction | shape | feedthrough |
+        | u    | in        | (n,)  | -           |
+        | y    | out       | (m,)  | u           |
+
+    Parameters:
+        n: size of the input vector u.
+        indices: list of m indices in 0..n-1.
+    """
+
+    params = {
+        "n": Param("int", doc="size of the input vector"),
+        "indices": Param("array", doc="list of indices (from 0) to pick"),
+    }
+    example = {"n": 3, "indices": [2, 0]}
+
+    def setup(self, n, indices):
+        if n < 1:
+            raise ParameterError(f"block '{self.name}' parameter 'n' must be at least 1, got {n}",
+                                 block=self.name)
+        idx = np.atleast_1d(np.asarray(indices, dtype=float))
+        if idx.ndim != 1 or idx.size == 0 or np.any(idx != np.floor(idx)) \
+                or np.any(idx < 0) or np.any(idx >= n):
+            raise ParameterError(
+                f"block '{self.name}' parameter 'indices' must be a non-empty list of whole "
+                f"numbers from 0 to {n - 1}, got {_as_written(indices)}", block=self.name)
+        self.require_size("number of indices", idx.size, n * MAX_PORTS)
+        idx = idx.astype(np.intp)
+        self.declare_input("u", (n,))
+        self.declare_output("y", (idx.size,))
+        step_one = idx.size == 1 or np.all(np.diff(idx) == 1)
+        # contiguous ranges are basic slices (views, no copy)
+        self._pick = slice(int(idx[0]), int(idx[-1]) + 1) if step_one else idx
+
+    def output(self, t, x, u):
+        return (u[0][:, self._pick],)
+
+
+@register
+class Mux(Block):
+    """Mux: concatenates vectors into one vector.
+
+    Equation: y = [u1; u2; ...; uk].
+
+    Ports (drawn for sizes = [2, 1]; one input u_i per size):
+        | port | direction | shape  | feedthrough |
+        | u1   | in        | (2,)   | -           |
+        | u2   | in        | (1,)   | -           |
+        | y    | out       | (3,)   | u1, u2      |
+
+    Parameters:
+        sizes: list of the input vector sizes.
+    """
+
+    params = {"sizes": Param("array", doc="input vector sizes, e.g. [2, 1]")}
+    example = {"sizes": [2, 1]}
+
+    def setup(self, sizes):
+        sizes = _sizes_param(self, sizes)
+        for j, size in enumerate(sizes):
+            self.declare_input(f"u{j + 1}", (size,))
+        self.declare_output("y", (sum(sizes),))
+
+    def output(self, t, x, u):
+        batch = max(v.shape[0] for v in u)
+        return (np.concatenate([v if v.shape[0] == batch else
+                                np.broadcast_to(v, (batch,) + v.shape[1:]) for v in u], axis=1),)
+
+
+@register
+class Demux(Block):
+    """Demux: splits a vector into consecutive parts.
+
+    Equation: [y1; y2; ...; yk] = u.
+
+    Ports (drawn for sizes = [2, 1]; one output y_i per size):
+        | port | direction | shape | feedthrough |
+        | u    | in        | (3,)  | -           |
+        | y1   | out       | (2,)  | u           |
+        | y2   | out       | (1,)  | u           |
+
+    Parameters:
+        sizes: list of the output vector sizes (their sum is the size of u).
+    """
+
+    params = {"sizes": Param("array", doc="output vector sizes, e.g. [2, 1]")}
+    example = {"sizes": [2, 1]}
+
+    def setup(self, sizes):
+        sizes = _sizes_param(self, sizes)
+        self.declare_input("u", (sum(sizes),))
+        ends = np.cumsum(sizes)
+        self._slices = [slice(int(e - s), int(e)) for s, e in zip(sizes, ends)]
+        for j, size in enumerate(sizes):
+            self.declare_output(f"y{j + 1}", (size,))
+
+    def output(self, t, x, u):
+        v = u[0]
+        return tuple(v[:, s] for s in self._slices)

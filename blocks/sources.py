@@ -1,1 +1,424 @@
-"""(being written)"""
+"""Signal sources: blocks with no inputs and no state whose outputs depend on time only.
+
+Every source evaluates closed-form expressions of ``t``; the sinusoidal and polynomial
+sources also return their analytic time derivatives as extra outputs, so a desired
+trajectory can supply q_d, qdot_d, qddot_d, ... without numerical differentiation.
+All numeric data used at run time live in ``self.p`` with a leading batch axis, so a
+batched sweep may stack any numeric parameter.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fwdstep.block import Block, Param, shape_str
+from fwdstep.errors import ParameterError
+from fwdstep.registry import register
+
+#: The highest derivative order a source may be asked for.
+MAX_DERIVATIVES = 8
+#: The largest number of sinusoid terms (channels x sinusoids) one block may hold.
+MAX_TERMS = 1_000_000
+#: The highest polynomial degree.
+MAX_DEGREE = 64
+
+
+def _derivative_count(block: Block, derivatives: int) -> int:
+    if not 0 <= derivatives <= MAX_DERIVATIVES:
+        raise ParameterError(
+            f"block '{block.name}' parameter 'derivatives' must be between 0 and "
+            f"{MAX_DERIVATIVES}, got {derivatives}", block=block.name)
+    return derivatives
+
+
+def _derivative_names(m: int) -> list[str]:
+    return ["y"] + [f"y_d{j}" for j in range(1, m + 1)]
+
+
+@register
+class Constant(Block):
+    """Constant: y = value, a fixed array of any shape.
+
+    Equation: y(t) = value.
+
+    Ports:
+        | port | direction | shape          | feedthrough |
+        | y    | out       | shape of value | -           |
+
+    Parameters:
+        value: number, vector or matrix; its shape is the shape of y.
+    """
+
+    params = {"value": Param("array", doc="the constant (any shape)")}
+    example = {"value": [1.0, -2.0]}
+
+    def setup(self, value):
+        value = np.asarray(value, dtype=float)
+        self.declare_output("y", value.shape, feedthrough=())
+        self.set_param("value", value)
+
+    def output(self, t, x, u):
+        return (self.p.value,)
+
+
+@register
+class Step(Block):
+    """Step: y = before for t < time, y = after from t = time on (per element).
+
+    Equation: y_i(t) = before_i if t < time_i, else after_i.
+
+    Ports:
+        | port | direction | shape                                 | feedthrough |
+        | y    | out       | broadcast shape of before, after, time | -           |
+
+    Parameters:
+        after: value from the step time on (number or array).
+        before: value before the step time (default 0).
+        time: step time in seconds (default 0); an array gives one step time per element.
+    """
+
+    params = {
+        "after": Param("array", doc="value from the step time on"),
+        "before": Param("array", default=0.0, doc="value before the step time"),
+        "time": Param("array", default=0.0, doc="step time [s], scalar or per element"),
+    }
+    example = {"after": [1.0, 2.0], "before": 0.5, "time": [0.1, 0.2]}
+
+    def setup(self, after, before, time):
+        arrays = {"before": np.asarray(before, dtype=float),
+                  "after": np.asarray(after, dtype=float),
+                  "time": np.asarray(time, dtype=float)}
+        try:
+            shape = np.broadcast_shapes(*(a.shape for a in arrays.values()))
+        except ValueError:
+            found = ", ".join(f"{k} {shape_str(a.shape)}" for k, a in arrays.items())
+            raise ParameterError(
+                f"block '{self.name}' parameters 'before', 'after' and 'time' have shapes that "
+                f"do not broadcast: {found}", block=self.name) from None
+        self.declare_output("y", shape, feedthrough=())
+        for key, arr in arrays.items():
+            self.set_param(key, np.broadcast_to(arr, shape))
+
+    def output(self, t, x, u):
+        p = self.p
+        return (np.where(t >= p.time, p.after, p.before),)
+
+
+class _SinusoidSum(Block):
+    """Shared machinery: y_i = offset_i + sum_k A_ik sin(w_ik t + phi_ik), and derivatives.
+
+    Subclasses call ``_declare_sinusoids`` in ``setup`` with (N, K) arrays.
+    """
+
+    def _declare_sinusoids(self, amplitude, frequency, phase, offset, derivatives: int,
+                           scalar: bool) -> None:
+        m = _derivative_count(self, derivatives)
+        n_channels, n_terms = amplitude.shape
+        orders = np.arange(m + 1)
+        # d^j/dt^j sin(a) = sin(a + j pi/2): +sin, +cos, -sin, -cos, ...  The sign is folded
+        # into the coefficients: even orders multiply sin(arg), odd orders cos(arg).
+        signs = np.where((orders // 2) % 2 == 0, 1.0, -1.0)
+        coef = (signs[:, None, None] * amplitude[None]
+                * frequency[None] ** orders[:, None, None])            # (m+1, N, K)
+        self.set_param("frequency", frequency)
+        self.set_param("phase", phase)
+        self.set_param("offset", offset)
+        self.set_param("even_coef", coef[0::2])
+        self.set_param("odd_coef", coef[1::2])
+        self._m = m
+        self._single_term = n_terms == 1
+        self._scalar = scalar
+        shape = () if scalar else (n_channels,)
+        for name in _derivative_names(m):
+            self.declare_output(name, shape, feedthrough=())
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        """Pre-slice the (possibly stacked) parameters into the arrays ``output`` uses, so a
+        call costs one sin, one cos and one multiply per output."""
+        p = self.p
+        m = self._m
+        # single sinusoid per channel: drop the sinusoid axis; scalar signal: the channel axis
+        drop = (0 if self._single_term else slice(None),)
+        lead = (slice(None),) + ((0,) if self._scalar else ())
+        self._w = p.frequency[lead + (Ellipsis,) + drop]
+        self._phi = p.phase[lead + (Ellipsis,) + drop]
+        self._offset = p.offset[lead] if np.any(p.offset) else None
+        self._coef = [(p.even_coef if j % 2 == 0 else p.odd_coef)
+                      [(slice(None), j // 2) + lead[1:] + (Ellipsis,) + drop]
+                      for j in range(m + 1)]
+
+    def output(self, t, x, u):
+        arg = self._w * t + self._phi
+        s = np.sin(arg)
+        c = np.cos(arg) if self._m else None
+        coef = self._coef
+        if self._single_term:
+            outs = [coef[j] * (c if j % 2 else s) for j in range(self._m + 1)]
+        else:
+            outs = [(coef[j] * (c if j % 2 else s)).sum(-1) for j in range(self._m + 1)]
+        if self._offset is not None:
+            outs[0] = outs[0] + self._offset
+        return tuple(outs)
+
+
+def _per_channel(block: Block, key: str, value) -> np.ndarray:
+    """Sine parameter -> (N, K): scalar -> (1, 1), (n,) -> (n, 1), (n, k) kept."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim > 2:
+        raise ParameterError(
+            f"block '{block.name}' parameter '{key}' must be a number, an (n,) vector or an "
+            f"(n, k) matrix, got shape {arr.shape}", block=block.name)
+    return arr.reshape(arr.shape + (1,) * (2 - arr.ndim))
+
+
+def _broadcast(block: Block, arrays: dict, hint: str = "") -> tuple:
+    """Common broadcast shape of named arrays, or a ParameterError naming every shape."""
+    try:
+        return np.broadcast_shapes(*(a.shape for a in arrays.values()))
+    except ValueError:
+        names = list(arrays)
+        listed = ", ".join(f"'{k}' {shape_str(np.shape(a))}" for k, a in arrays.items())
+        raise ParameterError(
+            f"block '{block.name}' parameters {', '.join(repr(k) for k in names)} do not "
+            f"broadcast to one shape: {listed}{hint}", block=block.name) from None
+
+
+@register
+class Sine(_SinusoidSum):
+    """Sine: sum of sinusoids per channel, with its analytic time derivatives.
+
+    Equation: y_i(t) = offset_i + sum_k A_ik sin(w_ik t + phi_ik), and
+    y_dj = d^j y / dt^j = sum_k A_ik w_ik^j sin(w_ik t + phi_ik + j pi/2) for j = 1..m,
+    m = derivatives (e.g. q_d, qdot_d, qddot_d for the reference dynamics (14), (16)).
+
+    Ports (drawn for derivatives = 2; y_dj exists for j = 1..derivatives):
+        | port | direction | shape | feedthrough |
+        | y    | out       | (n,)  | -           |
+        | y_d1 | out       | (n,)  | -           |
+        | y_d2 | out       | (n,)  | -           |
+
+    The shape is () when amplitude, frequency, phase and offset are all numbers.
+
+    Parameters:
+        amplitude: A; number, (n,) one sinusoid per channel, or (n, k) k sinusoids per channel.
+        frequency: w in rad/s; same forms as amplitude.
+        phase: phi in rad (default 0); same forms as amplitude.
+        offset: number or (n,) (default 0).
+        derivatives: m, number of derivative outputs y_d1..y_dm (0 to 8, default 0).
+    Broadcasting is per channel: a 1-D array is one value per channel (axis 0), a 2-D
+    array is (channel, sinusoid); write [[w1, w2]] for sinusoids shared by all channels.
+    """
+
+    params = {
+        "amplitude": Param("array", doc="A (number, (n,) or (n, k))"),
+        "frequency": Param("array", doc="w [rad/s] (number, (n,) or (n, k))"),
+        "phase": Param("array", default=0.0, doc="phi [rad] (number, (n,) or (n, k))"),
+        "offset": Param("array", default=0.0, doc="constant added per channel ((n,) or number)"),
+        "derivatives": Param("int", default=0, doc="number of derivative outputs (0..8)"),
+    }
+    example = {"amplitude": [1.0, 0.5], "frequency": [[1.0, 3.0]], "phase": [0.0, 0.3],
+               "offset": [0.1, -0.2], "derivatives": 2}
+
+    def setup(self, amplitude, frequency, phase, offset, derivatives):
+        parts = {"amplitude": _per_channel(self, "amplitude", amplitude),
+                 "frequency": _per_channel(self, "frequency", frequency),
+                 "phase": _per_channel(self, "phase", phase)}
+        offset = np.asarray(offset, dtype=float)
+        if offset.ndim > 1:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'offset' must be a number or an (n,) vector, "
+                f"got shape {offset.shape}", block=self.name)
+        scalar = all(np.ndim(v) == 0 for v in (amplitude, frequency, phase, offset))
+        n_channels, n_terms = _broadcast(
+            self, parts, "; a 1-D array is one value per channel, write [[...]] for "
+            "sinusoids shared by all channels")
+        if offset.size not in (1, n_channels) and n_channels != 1:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'offset' has {offset.size} values but "
+                f"amplitude, frequency and phase give {n_channels} channels", block=self.name)
+        n_channels = max(n_channels, offset.size)
+        self.require_size("channels x sinusoids", n_channels * n_terms, MAX_TERMS)
+        full = (n_channels, n_terms)
+        self._declare_sinusoids(*(np.broadcast_to(parts[k], full) for k in parts),
+                                np.broadcast_to(offset, (n_channels,)), derivatives, scalar)
+
+
+@register
+class MultiSine(_SinusoidSum):
+    """MultiSine: n* frequencies shared by all channels, per-channel amplitudes and phases.
+
+    Equation: tau*_i(t) = offset_i + sum_k A_ik sin(w_k t + phi_ik), k = 1..n* -- the
+    disturbance with n* frequencies of eq. (113)/(a2); y_dj = d^j y / dt^j for j = 1..m.
+
+    Ports (drawn for derivatives = 0; y_dj exists for j = 1..derivatives):
+        | port | direction | shape | feedthrough |
+        | y    | out       | (n,)  | -           |
+
+    Parameters:
+        frequencies: (n*,) frequencies w_k in rad/s.
+        amplitudes: (n, n*) amplitudes A_ik (row i: channel i).
+        phases: phi_ik in rad, broadcastable to (n, n*) by numpy rules (default 0).
+        offset: number or (n,) (default 0).
+        derivatives: m, number of derivative outputs y_d1..y_dm (0 to 8, default 0).
+    """
+
+    params = {
+        "frequencies": Param("array", doc="(n*,) frequencies [rad/s]"),
+        "amplitudes": Param("array", doc="(n, n*) amplitudes"),
+        "phases": Param("array", default=0.0, doc="phases [rad], broadcastable to (n, n*)"),
+        "offset": Param("array", default=0.0, doc="constant added per channel"),
+        "derivatives": Param("int", default=0, doc="number of derivative outputs (0..8)"),
+    }
+    example = {"frequencies": [1.0, 2.5, 4.0], "amplitudes": [[1.0, 0.5, 0.2], [0.3, 0.0, 1.0]],
+               "phases": [[0.0, 0.1, 0.2], [1.0, 1.1, 1.2]]}
+
+    def setup(self, frequencies, amplitudes, phases, offset, derivatives):
+        w = np.asarray(frequencies, dtype=float)
+        A = np.asarray(amplitudes, dtype=float)
+        if w.ndim != 1:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'frequencies' must be an (n*,) vector, got "
+                f"shape {w.shape}", block=self.name)
+        if A.ndim != 2 or A.shape[1] != w.size:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'amplitudes' must be an (n, n*) matrix with "
+                f"n* = {w.size} columns (one per frequency), got shape {A.shape}",
+                block=self.name)
+        self.require_size("channels x frequencies", A.size, MAX_TERMS)
+        phases = np.asarray(phases, dtype=float)
+        offset = np.asarray(offset, dtype=float)
+        _broadcast(self, {"amplitudes": A, "phases": phases})
+        if phases.ndim > 2 or np.broadcast_shapes(A.shape, phases.shape) != A.shape:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'phases' must broadcast to the amplitudes' "
+                f"shape {A.shape}, got shape {phases.shape}", block=self.name)
+        if offset.ndim > 1 or offset.size not in (1, A.shape[0]):
+            raise ParameterError(
+                f"block '{self.name}' parameter 'offset' must be a number or an (n,) vector "
+                f"with n = {A.shape[0]}, got shape {offset.shape}", block=self.name)
+        self._declare_sinusoids(A, np.broadcast_to(w, A.shape), np.broadcast_to(phases, A.shape),
+                                np.broadcast_to(offset, A.shape[:1]), derivatives, False)
+
+
+@register
+class RandomDisturbance(_SinusoidSum):
+    """RandomDisturbance: seeded band-limited random signal per channel (smooth).
+
+    Equation: y_i(t) = sum_{k=1..N} A_ik sin(w_ik t + phi_ik), with, drawn once from
+    numpy's default_rng(seed): w_ik = cutoff (k - 1 + U_ik) / N (one frequency in each of N
+    equal bands of (0, cutoff)), phi_ik uniform in [0, 2 pi), A_ik Rayleigh distributed
+    and scaled so that sum_k A_ik^2 / 2 = std_i^2 (the long-run mean square of channel i
+    is exactly std_i^2).  A flat spectrum up to ``cutoff`` and nothing above; being a
+    finite sum of sinusoids it is infinitely differentiable, so fixed-step solvers keep
+    their order.
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | y    | out       | (n,)  | -           |
+
+    Parameters:
+        n: number of channels.
+        std: root-mean-square value per channel (number or (n,)).
+        cutoff: highest frequency in rad/s (> 0).
+        seed: seed of the random generator (whole number >= 0); same seed, same signal.
+        components: N, sinusoids per channel (default 50).
+    """
+
+    params = {
+        "n": Param("int", doc="number of channels"),
+        "std": Param("array", doc="RMS value per channel (number or (n,))"),
+        "cutoff": Param("float", doc="highest frequency [rad/s]"),
+        "seed": Param("int", default=0, doc="random generator seed"),
+        "components": Param("int", default=50, doc="sinusoids per channel"),
+    }
+    example = {"n": 2, "std": [0.5, 1.0], "cutoff": 10.0, "seed": 7, "components": 20}
+
+    def setup(self, n, std, cutoff, seed, components):
+        name = self.name
+        if n < 1:
+            raise ParameterError(f"block '{name}' parameter 'n' must be at least 1, got {n}",
+                                 block=name)
+        if components < 1:
+            raise ParameterError(f"block '{name}' parameter 'components' must be at least 1, "
+                                 f"got {components}", block=name)
+        if not cutoff > 0:
+            raise ParameterError(f"block '{name}' parameter 'cutoff' must be positive, got "
+                                 f"{cutoff}", block=name)
+        if seed < 0:
+            raise ParameterError(f"block '{name}' parameter 'seed' must be >= 0, got {seed}",
+                                 block=name)
+        std = np.asarray(std, dtype=float)
+        if std.ndim > 1 or std.size not in (1, n) or np.any(std < 0):
+            raise ParameterError(
+                f"block '{name}' parameter 'std' must be a number or an (n,) vector with "
+                f"n = {n}, all >= 0, got {std.tolist()}", block=name)
+        self.require_size("n x components", n * components, MAX_TERMS)
+        rng = np.random.default_rng(seed)
+        frequency = cutoff * (np.arange(components) + rng.uniform(size=(n, components))) \
+            / components
+        phase = rng.uniform(0.0, 2.0 * math.pi, size=(n, components))
+        amplitude = rng.rayleigh(size=(n, components))
+        amplitude *= (np.broadcast_to(std, (n,)) * np.sqrt(2.0 / np.sum(amplitude ** 2, axis=1))
+                      )[:, None]
+        self._declare_sinusoids(amplitude, frequency, phase, np.zeros(n), 0, False)
+
+
+@register
+class Polynomial(Block):
+    """Polynomial: y_i(t) = sum_k c_ik t^k per channel, with its analytic time derivatives.
+
+    Equation: y_i(t) = sum_{k=0..d} c_ik t^k (ascending powers), and
+    y_dj = d^j y / dt^j = sum_{k>=j} c_ik k!/(k-j)! t^(k-j) for j = 1..m, m = derivatives.
+    (A ramp q_d = a + b t meets Theorem 1's assumption for every ell >= 1.)
+
+    Ports (drawn for derivatives = 2; y_dj exists for j = 1..derivatives):
+        | port | direction | shape | feedthrough |
+        | y    | out       | (n,)  | -           |
+        | y_d1 | out       | (n,)  | -           |
+        | y_d2 | out       | (n,)  | -           |
+
+    The shape is () when coefficients is a 1-D list.
+
+    Parameters:
+        coefficients: (n, d+1) matrix, row i = c_i0, c_i1, ..., c_id (ascending powers,
+            unlike numpy.polyval); a 1-D list c_0..c_d gives a scalar signal.
+        derivatives: m, number of derivative outputs y_d1..y_dm (0 to 8, default 0).
+    """
+
+    params = {
+        "coefficients": Param("array", doc="(n, d+1) ascending-power coefficients per channel"),
+        "derivatives": Param("int", default=0, doc="number of derivative outputs (0..8)"),
+    }
+    example = {"coefficients": [[0.0, 1.0, 0.5], [1.0, -0.5, 0.0]], "derivatives": 2}
+
+    def setup(self, coefficients, derivatives):
+        c = np.asarray(coefficients, dtype=float)
+        if c.ndim not in (1, 2) or c.shape[-1] == 0:
+            raise ParameterError(
+                f"block '{self.name}' parameter 'coefficients' must be a non-empty list c_0..c_d "
+                f"or an (n, d+1) matrix, got shape {c.shape}", block=self.name)
+        m = _derivative_count(self, derivatives)
+        scalar = c.ndim == 1
+        c = c.reshape(1, -1) if scalar else c
+        degree = c.shape[1] - 1
+        self.require_size("degree", degree, MAX_DEGREE)
+        coef = np.zeros((m + 1,) + c.shape)
+        for j in range(min(m, degree) + 1):
+            k = np.arange(j, degree + 1)
+            falling = np.array([math.perm(int(ki), j) for ki in k], dtype=float)
+            coef[j, :, :degree + 1 - j] = c[:, j:] * falling
+        self.set_param("coef", coef)                                  # (m+1, n, d+1)
+        self._powers = np.arange(degree + 1, dtype=float)
+        self._m = m
+        self._scalar = scalar
+        shape = () if scalar else (c.shape[0],)
+        for name in _derivative_names(m):
+            self.declare_output(name, shape, feedthrough=())
+
+    def output(self, t, x, u):
+        y = self.p.coef @ (float(t) ** self._powers)                  # (B, m+1, n)
+        if self._scalar:
+            y = y[..., 0]
+        return tuple(y[:, j] for j in range(self._m + 1))
