@@ -158,11 +158,17 @@ class TwoLinkArm(Block):
         theta = self.p.theta                      # (B, 7)
         self._a = [theta[:, k] for k in range(7)]  # each (B,)
         self._gravity = bool(np.any(theta[:, 4:] != 0.0))
+        # one variant: plain floats, for the scalar fast path of a single run
+        self._a_float = tuple(theta[0].tolist()) if theta.shape[0] == 1 else None
 
     def output(self, t, x, u):
         return x[:, 0:2], x[:, 2:4]
 
     def derivative(self, t, x, u):
+        tau, tau_star = u
+        if self._a_float is not None and x.shape[0] == 1 and tau.shape[0] == 1 \
+                and tau_star.shape[0] == 1:
+            return self._derivative_single(x, tau, tau_star)
         a1, a2, a3, a4, a5, a6, a7 = self._a
         q1 = x[:, 0]
         q2 = x[:, 1]
@@ -173,7 +179,7 @@ class TwoLinkArm(Block):
         h12 = a2 + a3 * c2 + a4 * s2
         h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
         hh = a3 * s2 - a4 * c2
-        torque = u[0] + u[1]
+        torque = tau + tau_star
         # r = tau + tau_star - C qdot - g
         r1 = torque[:, 0] + hh * (2.0 * qd1 + qd2) * qd2
         r2 = torque[:, 1] - hh * qd1 * qd1
@@ -189,6 +195,29 @@ class TwoLinkArm(Block):
         dx[:, 2] = (a2 * r1 - h12 * r2) * inv_det
         dx[:, 3] = (h11 * r2 - h12 * r1) * inv_det
         return dx
+
+    def _derivative_single(self, x, tau, tau_star):
+        """The same as ``derivative`` on Python floats (a single run is dominated by NumPy's
+        per-call overhead on length-1 arrays)."""
+        a1, a2, a3, a4, a5, a6, a7 = self._a_float
+        q1, q2, qd1, qd2 = x[0].tolist()
+        t1, t2 = tau[0].tolist()
+        ts1, ts2 = tau_star[0].tolist()
+        c2 = math.cos(q2)
+        s2 = math.sin(q2)
+        h12 = a2 + a3 * c2 + a4 * s2
+        h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
+        hh = a3 * s2 - a4 * c2
+        r1 = (t1 + ts1) + hh * (2.0 * qd1 + qd2) * qd2
+        r2 = (t2 + ts2) - hh * qd1 * qd1
+        if self._gravity:
+            q12 = q1 + q2
+            g2 = a6 * math.cos(q12) - a7 * math.sin(q12)
+            r1 = r1 - a5 * math.cos(q1) - g2
+            r2 = r2 - g2
+        inv_det = 1.0 / (h11 * a2 - h12 * h12)
+        return np.array([[qd1, qd2, (a2 * r1 - h12 * r2) * inv_det,
+                          (h11 * r2 - h12 * r1) * inv_det]])
 
 
 @register
@@ -236,6 +265,8 @@ class Regressor(Block):
     def output(self, t, x, u):
         q, qdot, zeta, zetad = u
         batch = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
+        if batch == 1:
+            return (self._output_single(q, qdot, zeta, zetad),)
         q2 = q[:, 1]
         qd1 = qdot[:, 0]
         z1 = zeta[:, 0]
@@ -265,6 +296,26 @@ class Regressor(Block):
             Y[:, 0, 6] = -s12
             Y[:, 1, 6] = -s12
         return (Y,)
+
+    def _output_single(self, q, qdot, zeta, zetad):
+        """The same as ``output`` on Python floats, for a batch of one."""
+        q1, q2 = q[0].tolist()
+        qd1, qd2 = qdot[0].tolist()
+        z1, z2 = zeta[0].tolist()
+        zd1, zd2 = zetad[0].tolist()
+        c2 = math.cos(q2)
+        s2 = math.sin(q2)
+        v1 = qd2 * z1 + (qd1 + qd2) * z2
+        v2 = qd1 * z1
+        w1 = 2.0 * zd1 + zd2
+        row1 = [zd1, zd2, c2 * w1 - s2 * v1, s2 * w1 + c2 * v1]
+        row2 = [0.0, zd1 + zd2, c2 * zd1 + s2 * v2, s2 * zd1 - c2 * v2]
+        if self._gravity:
+            c12 = math.cos(q1 + q2)
+            s12 = math.sin(q1 + q2)
+            row1 += [math.cos(q1), c12, -s12]
+            row2 += [0.0, c12, -s12]
+        return np.array([[row1, row2]])
 
 
 @register
