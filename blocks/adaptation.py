@@ -1,1 +1,121 @@
-"""(being written)"""
+"""Gradient adaptation laws for the parameter estimates of the forwardstepping controllers."""
+from __future__ import annotations
+
+import numpy as np
+
+from fwdstep.block import MAX_SIGNAL_SIZE, Block, Param
+from fwdstep.errors import ParameterError
+from fwdstep.registry import register
+
+
+@register
+class AdaptationLaw(Block):
+    """Gradient adaptation law: theta_hat' = -Gamma W^T e, integrated from theta_hat(0) = theta0.
+
+    Equations (5), (58), (89), (105): W is the (n, p) regressor (Y in (5), W or W* in
+    (58), (89), (105)) and e the (n,) error it is driven by (s in (5), Delta qdot +
+    alpha* Delta q in (58)); the estimate theta_hat has p entries and Gamma is a positive
+    scalar, a positive diagonal given as p numbers, or a (p, p) symmetric positive
+    definite matrix.  With ``regressor_shape: [n]`` the block is the scalar law of
+    eqs. (88), (111), (112), (120): W is an (n,) vector, theta_hat a scalar and
+    theta_hat' = -gamma W^T e with a positive scalar gamma.
+
+    Ports:
+        | port      | direction | shape          | feedthrough |
+        | W         | in        | (n, p) or (n,) | -           |
+        | e         | in        | (n,)           | -           |
+        | theta_hat | out       | (p,) or ()     | -           |
+
+    Parameters:
+        regressor_shape: [n, p] for a matrix regressor (estimate of p parameters), or [n]
+            for a vector regressor (scalar estimate).
+        gamma: adaptation gain Gamma: a positive number, p positive numbers (diagonal), or a
+            (p, p) symmetric positive definite matrix; a positive number for [n].
+        theta0: initial estimate theta_hat(0): one number for every entry, or p numbers.
+    """
+
+    params = {
+        "regressor_shape": Param("array", doc="shape of W: [n, p] (matrix) or [n] (vector)"),
+        "gamma": Param("array", 1.0, "adaptation gain: scalar, (p,) diagonal or (p, p) SPD"),
+        "theta0": Param("array", 0.0, "initial estimate: scalar or (p,)"),
+    }
+    example = {"regressor_shape": [2, 4], "gamma": [[2.0, 0.5, 0, 0], [0.5, 1.0, 0, 0],
+                                                    [0, 0, 1.0, 0], [0, 0, 0, 3.0]],
+               "theta0": [1.0, 0.5, 0.2, 0.1]}
+
+    def setup(self, regressor_shape, gamma, theta0):
+        shape = np.atleast_1d(np.asarray(regressor_shape))
+        if shape.ndim != 1 or shape.size not in (1, 2) or np.any(shape < 1) \
+                or np.any(shape != np.floor(shape)):
+            raise ParameterError(f"block {self.name!r} parameter 'regressor_shape' must be [n, p] "
+                                 f"or [n] with positive whole numbers, got {shape.tolist()}",
+                                 block=self.name)
+        n = self.require_size("n (regressor rows)", int(shape[0]), MAX_SIGNAL_SIZE)
+        self._vector = shape.size == 1
+        p = 1 if self._vector else self.require_size("p (parameters)", int(shape[1]), 10_000)
+        self.require_size("n * p (regressor size)", n * p, MAX_SIGNAL_SIZE)
+
+        G = np.asarray(gamma, dtype=float)
+        bad = ParameterError(f"block {self.name!r} parameter 'gamma' must be a positive number, "
+                             f"{p} positive numbers, or a symmetric positive definite "
+                             f"{p}x{p} matrix, got shape {G.shape}", block=self.name)
+        if G.size == 1 and G.ndim <= 2:
+            G = G.reshape(())
+        if G.ndim == 0 or G.ndim == 1:
+            if G.ndim == 1 and G.shape != (p,):
+                raise bad
+            if np.any(G <= 0.0):
+                raise bad
+            self._matrix_gain = False
+            self.set_param("gamma", np.broadcast_to(G, (1,)) if G.ndim == 0 else G)  # (1, 1|p)
+        elif G.shape == (p, p):
+            if not np.allclose(G, G.T, rtol=0.0, atol=1e-12 * np.max(np.abs(G))):
+                raise bad
+            try:
+                np.linalg.cholesky(G)
+            except np.linalg.LinAlgError:
+                raise bad from None
+            self._matrix_gain = True
+            self.set_param("gamma_T", G.T)                                        # (1, p, p)
+        else:
+            raise bad
+
+        t0 = np.asarray(theta0, dtype=float)
+        if t0.size == 1:
+            t0 = np.full(p, float(t0.reshape(())))
+        elif t0.shape != (p,):
+            raise ParameterError(f"block {self.name!r} parameter 'theta0' must be a number or "
+                                 f"{p} numbers, got shape {t0.shape}", block=self.name)
+
+        self.declare_input("W", (n,) if self._vector else (n, p))
+        self.declare_input("e", (n,))
+        self.declare_output("theta_hat", () if self._vector else (p,), feedthrough=())
+        self.declare_state(p, t0)
+        self.state_labels = ["theta_hat"] if self._vector else \
+            [f"theta_hat[{k}]" for k in range(p)]
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        if self._matrix_gain:
+            gT = self.p.gamma_T
+            self._gT = gT[0] if gT.shape[0] == 1 else None
+            self._gT_batched = gT
+
+    def output(self, t, x, u):
+        return (x[:, 0],) if self._vector else (x,)
+
+    def derivative(self, t, x, u):
+        W, e = u
+        if self._vector:
+            dx = -self.p.gamma * np.sum(W * e, axis=1, keepdims=True)
+        else:
+            v = np.matmul(e[:, None, :], W)[:, 0, :]          # W^T e, (B, p)
+            if not self._matrix_gain:
+                dx = -self.p.gamma * v
+            elif self._gT is not None:
+                dx = -(v @ self._gT)
+            else:
+                dx = -np.matmul(v[:, None, :], self._gT_batched)[:, 0, :]
+        if dx.shape[0] != x.shape[0]:      # inputs and gains not batched, state batched
+            dx = np.broadcast_to(dx, x.shape)
+        return dx

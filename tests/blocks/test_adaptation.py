@@ -1,0 +1,143 @@
+"""AdaptationLaw: theta_hat' = -Gamma W^T e (eqs. (5), (58), (89), (105)) and its scalar
+form (eqs. (88), (111), (112), (120))."""
+from __future__ import annotations
+
+import copy
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blocks.adaptation import AdaptationLaw
+from fwdstep.errors import ParameterError
+
+SPD = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, -0.3], [0.0, -0.3, 4.0]])
+
+
+def stacked(blocks):
+    """What a batched sweep does: stack every run-time parameter along the batch axis."""
+    clone = copy.copy(blocks[0])
+    clone.p = SimpleNamespace(**{k: np.concatenate([getattr(b.p, k) for b in blocks])
+                                 for k in vars(blocks[0].p)})
+    clone.finalize(len(blocks))
+    return clone
+
+
+@pytest.mark.parametrize("gamma", [2.5, [1.0, 2.0, 0.5], SPD], ids=["scalar", "diag", "spd"])
+def test_derivative_is_minus_gamma_w_transpose_e(gamma):
+    rng = np.random.default_rng(1)
+    law = AdaptationLaw("adapt", regressor_shape=[2, 3], gamma=gamma, theta0=[1.0, -2.0, 0.5])
+    assert law.inputs["W"].shape == (2, 3) and law.outputs["theta_hat"].shape == (3,)
+    assert law.feedthrough("theta_hat") == ()
+    np.testing.assert_array_equal(law.x0, [[1.0, -2.0, 0.5]])
+    G = np.asarray(gamma) if np.ndim(gamma) == 2 else np.diag(np.broadcast_to(gamma, 3))
+    W = rng.normal(size=(20, 2, 3))
+    e = rng.normal(size=(20, 2))
+    x = rng.normal(size=(20, 3))
+    dx = law.derivative(0.0, x, (W, e))
+    assert dx.shape == (20, 3)
+    for k in range(20):
+        np.testing.assert_allclose(dx[k], -G @ W[k].T @ e[k], rtol=1e-14, atol=1e-15)
+    (theta_hat,) = law.output(0.0, x, (W, e))
+    np.testing.assert_array_equal(theta_hat, x)
+
+
+def test_scalar_estimate_with_vector_regressor():
+    rng = np.random.default_rng(2)
+    law = AdaptationLaw("adapt", regressor_shape=[3], gamma=0.7, theta0=2.0)
+    assert law.inputs["W"].shape == (3,) and law.outputs["theta_hat"].shape == ()
+    np.testing.assert_array_equal(law.x0, [[2.0]])
+    W = rng.normal(size=(10, 3))
+    e = rng.normal(size=(10, 3))
+    x = rng.normal(size=(10, 1))
+    dx = law.derivative(0.0, x, (W, e))
+    assert dx.shape == (10, 1)
+    np.testing.assert_allclose(dx[:, 0], -0.7 * np.einsum("bi,bi->b", W, e), rtol=1e-14)
+    (theta_hat,) = law.output(0.0, x, (W, e))
+    assert theta_hat.shape == (10,)
+    np.testing.assert_array_equal(theta_hat, x[:, 0])
+
+
+def test_batched_gains_equal_separate_calls():
+    rng = np.random.default_rng(3)
+    gains = [SPD, np.diag([1.0, 3.0, 2.0]), 0.1 * np.eye(3)]
+    laws = [AdaptationLaw("adapt", regressor_shape=[2, 3], gamma=g) for g in gains]
+    batch = stacked(laws)
+    W = rng.normal(size=(3, 2, 3))
+    e = rng.normal(size=(3, 2))
+    x = np.zeros((3, 3))
+    dx = batch.derivative(0.0, x, (W, e))
+    for k, law in enumerate(laws):
+        np.testing.assert_allclose(dx[k], law.derivative(0.0, x[k:k + 1],
+                                                         (W[k:k + 1], e[k:k + 1]))[0],
+                                   rtol=1e-15, atol=0)
+    # diagonal gains stacked, inputs of batch 1 broadcast against a batched state
+    diag = stacked([AdaptationLaw("a", regressor_shape=[2, 3], gamma=g)
+                    for g in ([1.0, 2.0, 3.0], [4.0, 5.0, 6.0])])
+    dx = diag.derivative(0.0, np.zeros((2, 3)), (W[:1], e[:1]))
+    v = W[0].T @ e[0]
+    np.testing.assert_allclose(dx, [-np.array([1.0, 2.0, 3.0]) * v,
+                                    -np.array([4.0, 5.0, 6.0]) * v], rtol=1e-15)
+    # unbatched block and inputs, batched state
+    dx = laws[0].derivative(0.0, np.zeros((4, 3)), (W[:1], e[:1]))
+    assert dx.shape == (4, 3)
+
+
+def test_gradient_law_makes_lyapunov_function_decrease():
+    """The sign convention: with e' = -k e + W (theta_hat - theta) (as eq. (57)),
+    V = e^T e / 2 + (theta_hat - theta)^T Gamma^-1 (theta_hat - theta) / 2 has V' = -k e^T e;
+    the integral identity V(T) - V(0) = -k int e^T e dt holds to the RK4 error."""
+    law = AdaptationLaw("adapt", regressor_shape=[2, 3], gamma=SPD, theta0=0.0)
+    theta = np.array([1.0, -0.5, 2.0])
+    k_gain = 2.0
+    G_inv = np.linalg.inv(SPD)
+
+    def regressor(t):
+        return np.array([[math.sin(t), 1.0, math.cos(2 * t)],
+                         [math.cos(t), math.sin(3 * t), 1.0]])[None]
+
+    def f(t, z):                      # z = [e (2), theta_hat (3), int e^T e]
+        e, th = z[:, :2], z[:, 2:5]
+        W = regressor(t)
+        de = -k_gain * e + np.matmul(W, (th - theta)[:, :, None])[:, :, 0]
+        dth = law.derivative(t, th, (W, e))
+        return np.hstack([de, dth, np.sum(e * e, axis=1, keepdims=True)])
+
+    def V(z):
+        d = z[0, 2:5] - theta
+        return 0.5 * z[0, :2] @ z[0, :2] + 0.5 * d @ G_inv @ d
+
+    z = np.hstack([[[0.5, -0.2]], law.x0, [[0.0]]])
+    V0, dt = V(z), 1e-3
+    history = [V0]
+    for step in range(10_000):                       # 10 s
+        t = step * dt
+        k1 = f(t, z)
+        k2 = f(t + dt / 2, z + dt / 2 * k1)
+        k3 = f(t + dt / 2, z + dt / 2 * k2)
+        k4 = f(t + dt, z + dt * k3)
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        history.append(V(z))
+    assert np.all(np.diff(history) <= 1e-12)          # V never increases
+    assert abs(V(z) - V0 + k_gain * z[0, 5]) < 1e-10
+    assert V(z) < 0.1 * V0                            # persistently exciting W: it converges
+    assert np.linalg.norm(z[0, 2:5] - theta) < 0.5 * np.linalg.norm(theta)
+
+
+@pytest.mark.parametrize("params, message", [
+    (dict(regressor_shape=[2, 2], gamma=[[1.0, 2.0], [0.0, 1.0]]), "symmetric positive"),
+    (dict(regressor_shape=[2, 2], gamma=[[1.0, 2.0], [2.0, 1.0]]), "symmetric positive"),
+    (dict(regressor_shape=[2, 2], gamma=-1.0), "positive number"),
+    (dict(regressor_shape=[2, 2], gamma=[1.0, 0.0]), "positive number"),
+    (dict(regressor_shape=[2, 3], gamma=[1.0, 2.0]), "got shape \\(2,\\)"),
+    (dict(regressor_shape=[2], gamma=[1.0, 2.0]), "positive number"),
+    (dict(regressor_shape=[2, 3], theta0=[1.0, 2.0]), "'theta0'"),
+    (dict(regressor_shape=[2, 0]), "'regressor_shape'"),
+    (dict(regressor_shape=[2, 3, 4]), "'regressor_shape'"),
+    (dict(regressor_shape=[2.5]), "'regressor_shape'"),
+    (dict(regressor_shape=[10**7, 10**6]), "limit"),
+])
+def test_rejects_bad_parameters(params, message):
+    with pytest.raises(ParameterError, match=message):
+        AdaptationLaw("adapt", **params)
