@@ -134,11 +134,28 @@ class Sum(Block):
         for j in range(len(signs)):
             self.declare_input(f"u{j + 1}", shape)
         self.declare_output("y", shape)
-        self._first_negative = signs[0] == "-"
-        self._plus = [j for j in range(1, len(signs)) if signs[j] == "+"]
-        self._minus = [j for j in range(1, len(signs)) if signs[j] == "-"]
+        self._expand = (-1,) + (1,) * len(shape)
+        # kept in p (not only as text) so a batched sweep over 'signs' stays exact
+        self.set_param("signs", [1.0 if c == "+" else -1.0 for c in signs])
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        signs = self.p.signs
+        if np.all(signs == signs[:1]):
+            row = signs[0]
+            self._columns = None
+            self._first_negative = row[0] < 0
+            self._plus = [j for j in range(1, row.size) if row[j] > 0]
+            self._minus = [j for j in range(1, row.size) if row[j] < 0]
+        else:  # variants with different signs: one multiply per input
+            self._columns = [signs[:, j].reshape(self._expand) for j in range(signs.shape[1])]
 
     def output(self, t, x, u):
+        if self._columns is not None:
+            y = self._columns[0] * u[0]
+            for j in range(1, len(u)):
+                y = y + self._columns[j] * u[j]
+            return (y,)
         y = -u[0] if self._first_negative else u[0]
         for j in self._plus:
             y = y + u[j]
@@ -197,16 +214,31 @@ class Product(Block):
         self.declare_input("a", a_shape)
         self.declare_input("b", b_shape)
         self.declare_output("y", op_a[:-1] + op_b[1:])
-        self._transpose_a = transpose_a
-        self._transpose_b = transpose_b
         self._kind = (len(a_shape), len(b_shape))
+        # flags kept in p so a batched sweep over them (possible for square a, b) stays exact
+        self.set_param("transpose_a", float(transpose_a))
+        self.set_param("transpose_b", float(transpose_b))
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        self._flags = []
+        for flag in (self.p.transpose_a, self.p.transpose_b):
+            if np.all(flag == flag[0]):
+                self._flags.append(bool(flag[0]))
+            else:  # per-variant choice: a (B, 1, 1) mask
+                self._flags.append((flag != 0).reshape(-1, 1, 1))
+
+    @staticmethod
+    def _op(m, flag):
+        if flag is True:
+            return m.swapaxes(-1, -2)
+        if flag is False:
+            return m
+        return np.where(flag, m.swapaxes(-1, -2), m)
 
     def output(self, t, x, u):
-        a, b = u
-        if self._transpose_a:
-            a = a.swapaxes(-1, -2)
-        if self._transpose_b:
-            b = b.swapaxes(-1, -2)
+        a = self._op(u[0], self._flags[0])
+        b = self._op(u[1], self._flags[1])
         kind = self._kind
         if kind == (2, 2):
             return (np.matmul(a, b),)
@@ -280,14 +312,25 @@ class Selector(Block):
                 f"block '{self.name}' parameter 'indices' must be a non-empty list of whole "
                 f"numbers from 0 to {n - 1}, got {_as_written(indices)}", block=self.name)
         self.require_size("number of indices", idx.size, n * MAX_PORTS)
-        idx = idx.astype(np.intp)
         self.declare_input("u", (n,))
         self.declare_output("y", (idx.size,))
-        step_one = idx.size == 1 or np.all(np.diff(idx) == 1)
-        # contiguous ranges are basic slices (views, no copy)
-        self._pick = slice(int(idx[0]), int(idx[-1]) + 1) if step_one else idx
+        self.set_param("indices", idx)
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        idx = self.p.indices.astype(np.intp)
+        if np.all(idx == idx[:1]):
+            row = idx[0]
+            step_one = row.size == 1 or np.all(np.diff(row) == 1)
+            # contiguous ranges are basic slices (views, no copy)
+            self._pick = slice(int(row[0]), int(row[-1]) + 1) if step_one else row
+            self._per_variant = None
+        else:  # variants pick different elements
+            self._per_variant = idx
 
     def output(self, t, x, u):
+        if self._per_variant is not None:
+            return (np.take_along_axis(u[0], self._per_variant, axis=1),)
         return (u[0][:, self._pick],)
 
 

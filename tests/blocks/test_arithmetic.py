@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from blocks.arithmetic import Demux, Gain, Mux, Product, ScalarProduct, Selector, Sum
+from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 
 RNG = np.random.default_rng(20240611)
@@ -34,6 +35,22 @@ def assert_batched_inputs_match_separate_calls(block):
             row = [v[min(i, v.shape[0] - 1)][None] for v in inputs]
             for yb, ys_i in zip(ys, call(block, *row)):
                 assert yb.shape[0] == B
+                np.testing.assert_allclose(yb[i], ys_i[0], rtol=1e-15, atol=1e-15)
+
+
+def assert_stacked_params_match_separate_calls(cls, variants):
+    """Parameters stacked by the engine's batched-sweep code, with (B, ...) inputs and with
+    (1, ...) inputs, give per-variant results equal to separate blocks."""
+    singles = [cls("b", **v) for v in variants]
+    big = stack_blocks([[cls("b", **v)] for v in variants])[0]
+    n = len(variants)
+    batched = random_inputs(big, n)
+    for inputs in (batched, [v[:1] for v in batched]):
+        ys = call(big, *inputs)
+        for i, single in enumerate(singles):
+            row = [v[min(i, v.shape[0] - 1)][None] for v in inputs]
+            for yb, ys_i in zip(ys, call(single, *row)):
+                assert yb.shape[0] == n
                 np.testing.assert_allclose(yb[i], ys_i[0], rtol=1e-15, atol=1e-15)
 
 
@@ -67,15 +84,10 @@ def test_gain_matrix_scalar_and_stacked():
     np.testing.assert_allclose(call(Gain("g", gain=K), u)[0], u @ K.T, rtol=1e-14)
     m = RNG.standard_normal((B, 2, 4))
     np.testing.assert_array_equal(call(Gain("g", gain=-3.0, shape=[2, 4]), m)[0], -3.0 * m)
-    # gains stacked along the batch axis, as a sweep does
     gains = [RNG.standard_normal((3, 2)) for _ in range(B)]
-    big = Gain("g", gain=gains[0])
-    big.p.K_T = np.stack([k.T for k in gains])
-    big.finalize(B)
-    y = call(big, u)[0]
-    for i in range(B):
-        np.testing.assert_allclose(y[i], call(Gain("g", gain=gains[i]), u[i:i + 1])[0][0],
-                                   rtol=1e-15, atol=1e-15)
+    assert_stacked_params_match_separate_calls(Gain, [{"gain": k} for k in gains])
+    assert_stacked_params_match_separate_calls(Gain, [{"gain": g, "shape": [2]}
+                                                      for g in (1.0, -2.0, 0.5)])
 
 
 # --------------------------------------------------------------------------- Sum
@@ -147,6 +159,19 @@ def test_selector_mux_demux():
     # inputs with different batch lengths broadcast
     y = call(Mux("m", sizes=[1, 2]), np.array([[7.0]]), u[:, :2])[0]
     np.testing.assert_array_equal(y, np.concatenate([np.full((B, 1), 7.0), u[:, :2]], axis=1))
+
+
+def test_structural_parameters_may_vary_within_a_batch():
+    """Sweeps over signs, indices or the transposes of square operands stay exact."""
+    assert_stacked_params_match_separate_calls(
+        Sum, [{"signs": s, "shape": [2]} for s in ("+-+", "-++", "+-+", "---")])
+    assert_stacked_params_match_separate_calls(
+        Selector, [{"n": 4, "indices": i} for i in ([0, 1], [3, 1], [2, 2])])
+    assert_stacked_params_match_separate_calls(
+        Product, [{"a_shape": [3, 3], "b_shape": [3, 3], "transpose_a": ta, "transpose_b": tb}
+                  for ta, tb in ((False, False), (True, False), (True, True), (False, True))])
+    assert_stacked_params_match_separate_calls(
+        Product, [{"a_shape": [3, 3], "b_shape": [3], "transpose_a": ta} for ta in (True, False)])
 
 
 # --------------------------------------------------------------------------- errors

@@ -8,6 +8,7 @@ import pytest
 from numpy.polynomial import polynomial as P
 
 from blocks.sources import Constant, MultiSine, Polynomial, RandomDisturbance, Sine, Step
+from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 
 NO_STATE = np.zeros((1, 0))
@@ -19,13 +20,10 @@ def out(block, t):
 
 
 def stacked(cls, variants):
-    """Separate blocks per variant, and one block with every numeric parameter stacked along
-    the batch axis (what a batched sweep does)."""
+    """Separate blocks per variant, and one block stacked by the engine's batched-sweep code
+    (parameters on which all variants agree keep a leading length of 1)."""
     singles = [cls("b", **v) for v in variants]
-    big = cls("b", **variants[0])
-    for key in vars(big.p):
-        setattr(big.p, key, np.concatenate([getattr(b.p, key) for b in singles]))
-    big.finalize(len(singles))
+    big = stack_blocks([[cls("b", **v)] for v in variants])[0]
     return singles, big
 
 
