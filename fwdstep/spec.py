@@ -308,11 +308,11 @@ class _Level:
             raise ConfigError(f"subsystem '{self.full(name)}' needs 'file:' (a path to a diagram)",
                               file=file, line=line)
         path = os.path.normpath(os.path.join(os.path.dirname(file), body["file"]))
-        if os.path.abspath(path) in self.stack:
+        if os.path.realpath(path) in self.stack:     # realpath: symbolic links too
             chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
             raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
                               file=file, line=_line(body, "file"))
-        if len(self.stack) >= MAX_SUBSYSTEM_DEPTH:
+        if len(self.stack) > MAX_SUBSYSTEM_DEPTH:     # stack = this file and its parents
             raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
                               file=file, line=line)
         child_doc = _read_document(path)
@@ -333,7 +333,7 @@ class _Level:
                                      line=_line(passed, key))
         ns = resolve_parameters(child_params, {}, path, preset=overrides)
         child = _Level(child_doc, path, ns, f"{self.full(name)}/",
-                       self.stack + (os.path.abspath(path),))
+                       self.stack + (os.path.realpath(path),))
         child.expand()
         ports = _mapping(child_doc.get("ports"), "ports", path, _line(child_doc, "ports"))
         ins = _mapping(ports.get("inputs"), "ports.inputs", path, _line(ports, "inputs"))
@@ -344,12 +344,14 @@ class _Level:
             resolved = []
             for tgt in tl:
                 blk, port = parse_signal(tgt, f"subsystem input '{pname}'", path, _line(ins, pname))
-                resolved.extend(child.resolve_dst(blk, port, path, _line(ins, pname)))
+                resolved.extend(child.resolve_dst(blk, port, path, _line(ins, pname),
+                                                  f"subsystem input '{pname}'"))
             self.sub_inputs[name][pname] = resolved
         self.sub_outputs[name] = {}
         for pname, source in outs.items():
             blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
-            src = child.resolve_src(blk, port, path, _line(outs, pname))
+            src = child.resolve_src(blk, port, path, _line(outs, pname),
+                                    f"subsystem output '{pname}'")
             self.sub_outputs[name][pname] = src
             self.aliases[f"{self.full(name)}.{pname}"] = f"{src[0]}.{src[1]}"
         self.aliases.update(child.aliases)
@@ -357,7 +359,7 @@ class _Level:
         self.connections.extend(child.connections)
         self.local_blocks[name] = "subsystem"
 
-    def resolve_src(self, blk: str, port: str, file, line) -> tuple:
+    def resolve_src(self, blk: str, port: str, file, line, what: str = "connection") -> tuple:
         kind = self.local_blocks.get(blk)
         if kind == "subsystem":
             outs = self.sub_outputs[blk]
@@ -367,10 +369,10 @@ class _Level:
                                   line=line, block=self.full(blk), port=port)
             return outs[port]
         if kind is None:
-            raise self._no_block(blk, file, line)
+            raise self._no_block(blk, file, line, what)
         return (self.full(blk), port)
 
-    def resolve_dst(self, blk: str, port: str, file, line) -> list:
+    def resolve_dst(self, blk: str, port: str, file, line, what: str = "connection") -> list:
         kind = self.local_blocks.get(blk)
         if kind == "subsystem":
             ins = self.sub_inputs[blk]
@@ -380,16 +382,16 @@ class _Level:
                                   line=line, block=self.full(blk), port=port)
             return ins[port]
         if kind is None:
-            raise self._no_block(blk, file, line)
+            raise self._no_block(blk, file, line, what)
         return [(self.full(blk), port)]
 
-    def _no_block(self, blk, file, line):
+    def _no_block(self, blk, file, line, what):
         import difflib
         names = list(self.local_blocks)
         close = difflib.get_close_matches(blk, names, n=1)
         hint = f"; did you mean '{close[0]}'?" if close else f"; blocks are: {', '.join(names)}"
-        return WiringError(f"connection names block '{blk}', which does not exist{hint}",
-                           file=file, line=line, block=blk)
+        return WiringError(f"{what} names block '{blk}', which does not exist{hint}",
+                           file=file, line=line, block=self.full(blk))
 
     def _connections(self):
         doc, file = self.doc, self.file
@@ -493,7 +495,7 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
     path = os.path.normpath(path)
     doc = _read_document(path)
     ns = resolve_parameters(doc.get("parameters"), overrides or {}, path)
-    level = _Level(doc, path, ns, "", (os.path.abspath(path),))
+    level = _Level(doc, path, ns, "", (os.path.realpath(path),))
     level.expand()
     sim = _simulation(doc, ns, path)
     lines = {}

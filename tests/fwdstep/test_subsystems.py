@@ -1,0 +1,511 @@
+"""Subsystems (``type: subsystem``): flattening, names, parameters, and their errors.
+
+A subsystem is a diagram file used as a block.  These tests write small diagrams into a
+temporary folder, load them through ``fwdstep.spec.load_spec`` / ``fwdstep.load_diagram``,
+and check: the flattened block names ``outer/inner/block``; that logged signals and
+``Result`` lookups accept both the internal name and the subsystem port name; that
+parameters pass down (defaults, overrides, expressions over the parent's parameters,
+dependent child parameters) through three levels; numbers through a run; and that every
+mistake is refused with the right exception class, the file and line where it was written,
+and the valid names.
+"""
+import os
+
+import numpy as np
+import pytest
+
+import fwdstep
+from fwdstep.errors import ConfigError, ParameterError, ShapeError, WiringError
+from fwdstep.spec import load_spec
+
+GAIN = """
+parameters:
+  k: 2
+  k2: 3*k          # depends on k: an override of k must reach it
+blocks:
+  g: {type: Gain, gain: k2, shape: [1]}
+ports:
+  inputs: {u: g.u}
+  outputs: {y: g.y}
+"""
+
+# level 2: two gains in series, the second one a subsystem of its own
+MIDDLE = """
+parameters:
+  m: 1
+blocks:
+  first: {type: Gain, gain: m, shape: [1]}
+  inner: {type: subsystem, file: gain.yaml, parameters: {k: m + 1}}
+connections:
+  - first.y -> inner.u
+ports:
+  inputs: {u: first.u}
+  outputs: {y: inner.y, raw: first.y}
+"""
+
+# level 1: the middle level as a subsystem
+OUTER = """
+parameters:
+  o: 1
+blocks:
+  mid: {type: subsystem, file: middle.yaml, parameters: {m: 2*o}}
+ports:
+  inputs: {u: mid.u}
+  outputs: {y: mid.y}
+"""
+
+TOP = """
+parameters:
+  a: 1
+blocks:
+  c: {type: Constant, value: [1.0]}
+  top: {type: subsystem, file: lib/outer.yaml, parameters: {o: a}}
+connections:
+  - c.y -> top.u
+simulation: {t_final: 0.01, step: 0.001}
+log: [top.y, top/mid.raw]
+"""
+
+
+def write(folder, name, text):
+    path = os.path.join(str(folder), name)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w") as fh:
+        fh.write(text)
+    return path
+
+
+@pytest.fixture
+def three_levels(tmp_path):
+    """top.yaml -> lib/outer.yaml -> lib/middle.yaml -> lib/gain.yaml (depth 3)."""
+    write(tmp_path, "lib/gain.yaml", GAIN)
+    write(tmp_path, "lib/middle.yaml", MIDDLE)
+    write(tmp_path, "lib/outer.yaml", OUTER)
+    return write(tmp_path, "top.yaml", TOP)
+
+
+def line_of(path, needle):
+    with open(path) as fh:
+        for i, text in enumerate(fh, start=1):
+            if needle in text:
+                return i
+    raise AssertionError(f"{needle!r} not in {path}")
+
+
+# ------------------------------------------------------------------------ flattening
+def test_nesting_depth_three_prefixes_block_names(three_levels):
+    spec = load_spec(three_levels)
+    names = [b.name for b in spec.blocks]
+    assert names == ["c", "top/mid/first", "top/mid/inner/g"]
+    files = {b.name: os.path.basename(b.file) for b in spec.blocks}
+    assert files == {"c": "top.yaml", "top/mid/first": "middle.yaml",
+                     "top/mid/inner/g": "gain.yaml"}
+    # a connection written inside a subsystem keeps the file and line it was written on
+    inner = [c for c in spec.connections if c.dst == ("top/mid/inner/g", "u")]
+    assert len(inner) == 1
+    assert os.path.basename(inner[0].file) == "middle.yaml"
+    assert inner[0].line == line_of(inner[0].file, "first.y -> inner.u")
+
+
+def test_parameters_pass_down_three_levels_and_reach_numbers(three_levels):
+    # a = 1 -> o = 1 -> m = 2 -> k = m + 1 = 3 -> k2 = 3 k = 9; y = m * k2 * 1 = 18
+    r = fwdstep.simulate(fwdstep.load_diagram(three_levels))
+    np.testing.assert_allclose(r["top.y"][-1], [18.0])
+    np.testing.assert_allclose(r["top/mid.raw"][-1], [2.0])
+    # the same signals under their internal (flattened) names
+    np.testing.assert_allclose(r["top/mid/inner/g.y"][-1], [18.0])
+    np.testing.assert_allclose(r["top/mid/first.y"][-1], [2.0])
+    assert "top.y" in r and "top/mid/inner/g.y" in r
+    # only the internal names are stored, once each
+    assert sorted(r.names) == ["top/mid/first.y", "top/mid/inner/g.y"]
+
+
+def test_top_level_override_reaches_the_deepest_level(three_levels):
+    # a = 2 -> o = 2 -> m = 4 -> k = 5 -> k2 = 15; y = 4 * 15 = 60
+    r = fwdstep.simulate(fwdstep.load_diagram(three_levels, overrides={"a": 2}))
+    np.testing.assert_allclose(r["top.y"][-1], [60.0])
+
+
+def test_defaults_used_when_nothing_is_passed(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: gain.yaml}
+connections:
+  - c.y -> s.u
+simulation: {t_final: 0.01, step: 0.001}
+log: [s.y]
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(top))
+    np.testing.assert_allclose(r["s.y"][-1], [6.0])     # k = 2, k2 = 6
+
+
+def test_same_file_twice_with_different_parameters(tmp_path):
+    """Two instances of one file are two sets of blocks (not a self-inclusion)."""
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  one: {type: subsystem, file: gain.yaml, parameters: {k: 1}}
+  two: {type: subsystem, file: gain.yaml, parameters: {k: 10}}
+connections:
+  - c.y -> one.u
+  - one.y -> two.u                # subsystem output straight into a subsystem input
+simulation: {t_final: 0.01, step: 0.001}
+log: [one.y, two.y]
+""")
+    d = fwdstep.load_diagram(top)
+    assert [b.name for b in d.blocks] == ["c", "one/g", "two/g"]
+    r = fwdstep.simulate(d)
+    np.testing.assert_allclose(r["one.y"][-1], [3.0])
+    np.testing.assert_allclose(r["two.y"][-1], [90.0])
+
+
+def test_input_port_fans_out_to_several_blocks(tmp_path):
+    write(tmp_path, "fan.yaml", """
+blocks:
+  a: {type: Gain, gain: 2, shape: [1]}
+  b: {type: Gain, gain: 3, shape: [1]}
+  s: {type: Sum, signs: "++", shape: [1]}
+connections:
+  - a.y -> s.u1
+  - b.y -> s.u2
+ports:
+  inputs: {u: [a.u, b.u]}
+  outputs: {y: s.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  f: {type: subsystem, file: fan.yaml}
+connections:
+  - c.y -> f.u
+simulation: {t_final: 0.01, step: 0.001}
+log: [f.y]
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(top))
+    np.testing.assert_allclose(r["f.y"][-1], [5.0])
+
+
+def test_subsystem_with_state_runs_and_plots_by_port_name(tmp_path):
+    """An integrator inside a subsystem; plots and metrics may name subsystem ports."""
+    write(tmp_path, "integ.yaml", """
+parameters:
+  x0: 0
+blocks:
+  i: {type: Integrator, shape: [1], initial: [x0]}
+ports:
+  inputs: {u: i.u}
+  outputs: {y: i.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [2.0]}
+  s: {type: subsystem, file: integ.yaml, parameters: {x0: 1}}
+connections:
+  - c.y -> s.u
+simulation: {t_final: 1, step: 0.01}
+log: []
+plots: {out: [s.y]}
+metrics: {error: s.y}
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(top))
+    np.testing.assert_allclose(r["s.y"][:, 0], 1.0 + 2.0 * r.t, atol=1e-12)
+    assert r.metrics()["final_abs_error"] == pytest.approx(3.0)
+
+
+def test_connection_inside_subsystem_to_undeclared_port_is_hidden(tmp_path):
+    """Blocks inside a subsystem are reachable from outside only through its ports."""
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: gain.yaml}
+connections:
+  - c.y -> s/g.u
+""")
+    with pytest.raises(WiringError, match="does not exist"):
+        load_spec(top)
+
+
+# ------------------------------------------------------------------------ errors
+def test_unknown_subsystem_input_port(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: gain.yaml}
+connections:
+  - c.y -> s.v
+""")
+    with pytest.raises(WiringError) as err:
+        load_spec(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{top}:{line_of(top, 'c.y -> s.v')}: ")
+    assert "subsystem 's' has no input port 'v'; input ports are: u" in msg
+
+
+def test_unknown_subsystem_output_port(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: gain.yaml}
+  g: {type: Gain, gain: 1, shape: [1]}
+connections:
+  - c.y -> s.u
+  - s.out -> g.u
+""")
+    with pytest.raises(WiringError) as err:
+        load_spec(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{top}:{line_of(top, 's.out -> g.u')}: ")
+    assert "subsystem 's' has no output port 'out'; output ports are: y" in msg
+
+
+def test_unknown_port_of_a_nested_subsystem_names_the_full_path(three_levels, tmp_path):
+    """A mistake two levels down names the subsystem by its full path and the file it is in."""
+    middle = write(tmp_path, "lib/middle.yaml", MIDDLE.replace("first.y -> inner.u",
+                                                               "first.y -> inner.w"))
+    with pytest.raises(WiringError) as err:
+        load_spec(three_levels)
+    msg = str(err.value)
+    assert msg.startswith(f"{middle}:{line_of(middle, 'first.y -> inner.w')}: ")
+    assert "subsystem 'top/mid/inner' has no input port 'w'; input ports are: u" in msg
+
+
+def test_unknown_parameter_passed_to_subsystem(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: gain.yaml, parameters: {gain: 3}}
+connections:
+  - c.y -> s.u
+""")
+    with pytest.raises(ParameterError) as err:
+        load_spec(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{top}:{line_of(top, 'gain: 3')}: ")
+    assert "subsystem 's' (gain.yaml) has no parameter 'gain'; parameters are: k, k2" in msg
+
+
+def test_parameter_passed_to_subsystem_without_parameters(tmp_path):
+    write(tmp_path, "plain.yaml", """
+blocks:
+  g: {type: Gain, gain: 1, shape: [1]}
+ports:
+  inputs: {u: g.u}
+  outputs: {y: g.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: plain.yaml, parameters: {k: 1}}
+""")
+    with pytest.raises(ParameterError, match=r"has no parameter 'k'; parameters are: \(none\)"):
+        load_spec(top)
+
+
+def test_parameter_expression_uses_the_parents_names_only(tmp_path):
+    """A passed value is evaluated in the parent; the child's own names are not visible."""
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+parameters:
+  a: 1
+blocks:
+  s: {type: subsystem, file: gain.yaml, parameters: {k: k2 + a}}
+""")
+    with pytest.raises(fwdstep.errors.ExpressionError) as err:
+        load_spec(top)
+    assert str(err.value).startswith(f"{top}:{line_of(top, 'k2 + a')}: ")
+    assert "undefined name 'k2'" in str(err.value)
+
+
+def test_error_inside_subsystem_names_block_path_and_child_file(tmp_path):
+    child = write(tmp_path, "bad.yaml", """
+blocks:
+  g: {type: Gain, gain: 1, shape: [1], gian: 2}
+ports:
+  inputs: {u: g.u}
+  outputs: {y: g.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: bad.yaml}
+""")
+    with pytest.raises(ParameterError) as err:
+        load_spec(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{child}:{line_of(child, 'gian')}: ")
+    assert "block 's/g' (Gain) has no parameter 'gian'" in msg
+    assert err.value.block == "s/g"
+
+
+def test_block_constructor_error_inside_subsystem_names_path(tmp_path):
+    """Errors raised when the block is built (graph phase) carry the flattened name too."""
+    child = write(tmp_path, "bad.yaml", """
+blocks:
+  tf: {type: TransferFunction, num: [1, 0, 0], den: [1, 1], shape: [1]}
+ports:
+  inputs: {u: tf.u}
+  outputs: {y: tf.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: bad.yaml}
+connections:
+  - c.y -> s.u
+""")
+    with pytest.raises(ParameterError) as err:
+        fwdstep.load_diagram(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{child}:")
+    assert "'s/tf'" in msg and "improper" in msg
+
+
+def test_unconnected_input_inside_subsystem_names_path(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: gain.yaml}
+""")
+    with pytest.raises(WiringError, match=r"block 's/g' input port 'u' is not connected"):
+        fwdstep.load_diagram(top)
+
+
+def test_shape_mismatch_across_the_boundary_points_at_the_parent_line(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  c: {type: Constant, value: [1.0, 2.0]}
+  s: {type: subsystem, file: gain.yaml}
+connections:
+  - c.y -> s.u
+""")
+    with pytest.raises(ShapeError) as err:
+        fwdstep.load_diagram(top)
+    assert str(err.value).startswith(f"{top}:{line_of(top, 'c.y -> s.u')}: ")
+    assert "s/g.u" in str(err.value)
+
+
+def test_port_declaration_naming_a_missing_block(tmp_path):
+    child = write(tmp_path, "bad.yaml", """
+blocks:
+  g: {type: Gain, gain: 1, shape: [1]}
+ports:
+  inputs: {u: gg.u}
+  outputs: {y: g.y}
+""")
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: bad.yaml}
+""")
+    with pytest.raises(WiringError) as err:
+        load_spec(top)
+    msg = str(err.value)
+    assert msg.startswith(f"{child}:{line_of(child, 'gg.u')}: ")
+    assert "subsystem input 'u' names block 'gg', which does not exist" in msg
+    assert "did you mean 'g'?" in msg
+
+
+def test_self_inclusion_is_refused(tmp_path):
+    me = write(tmp_path, "me.yaml", """
+blocks:
+  again: {type: subsystem, file: me.yaml}
+""")
+    with pytest.raises(ConfigError) as err:
+        load_spec(me)
+    msg = str(err.value)
+    assert msg.startswith(f"{me}:{line_of(me, 'file: me.yaml')}: ")
+    assert "subsystem 'again' includes itself: me.yaml -> me.yaml" in msg
+
+
+def test_mutual_inclusion_is_refused_with_the_chain(tmp_path):
+    write(tmp_path, "a.yaml", """
+blocks:
+  b: {type: subsystem, file: sub/b.yaml}
+""")
+    b = write(tmp_path, "sub/b.yaml", """
+blocks:
+  a: {type: subsystem, file: ../a.yaml}
+""")
+    with pytest.raises(ConfigError) as err:
+        load_spec(os.path.join(str(tmp_path), "a.yaml"))
+    msg = str(err.value)
+    assert msg.startswith(f"{b}:")
+    assert "subsystem 'b/a' includes itself: a.yaml -> b.yaml -> a.yaml" in msg
+
+
+def test_self_inclusion_through_a_differently_spelled_path(tmp_path):
+    """'./x/../me.yaml' is the same file as 'me.yaml'."""
+    os.makedirs(os.path.join(str(tmp_path), "x"))
+    me = write(tmp_path, "me.yaml", """
+blocks:
+  again: {type: subsystem, file: ./x/../me.yaml}
+""")
+    with pytest.raises(ConfigError, match="includes itself"):
+        load_spec(me)
+
+
+def test_missing_subsystem_file(tmp_path):
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: nowhere.yaml}
+""")
+    with pytest.raises(fwdstep.errors.DiagramError, match="nowhere.yaml"):
+        load_spec(top)
+
+
+def test_unknown_subsystem_key(tmp_path):
+    write(tmp_path, "gain.yaml", GAIN)
+    top = write(tmp_path, "top.yaml", """
+blocks:
+  s: {type: subsystem, file: gain.yaml, params: {k: 1}}
+""")
+    with pytest.raises(ParameterError) as err:
+        load_spec(top)
+    assert "subsystem 's' has no key 'params'; keys are: type, file, parameters" \
+        in str(err.value)
+
+
+def test_batch_of_subsystem_variants(three_levels):
+    """Variants differing only in a parameter passed down run as one batch."""
+    specs = [load_spec(three_levels, {"a": a}) for a in (1.0, 2.0)]
+    r = fwdstep.simulate(fwdstep.compile_batch(specs))
+    np.testing.assert_allclose(r["top.y"][-1, :, 0], [18.0, 60.0])
+
+
+def _chain(folder, levels):
+    """level0.yaml includes level1.yaml ... includes level<levels>.yaml (a Gain)."""
+    write(folder, f"level{levels}.yaml", GAIN.replace("k: 2", "k: 1"))
+    for i in range(levels - 1, -1, -1):
+        write(folder, f"level{i}.yaml", f"""
+blocks:
+  s: {{type: subsystem, file: level{i + 1}.yaml}}
+ports:
+  inputs: {{u: s.u}}
+  outputs: {{y: s.y}}
+""")
+    return os.path.join(str(folder), "level0.yaml")
+
+
+def test_depth_limit_is_exact(tmp_path):
+    """MAX_SUBSYSTEM_DEPTH levels of subsystems load; one more is refused."""
+    from fwdstep.spec import MAX_SUBSYSTEM_DEPTH
+    spec = load_spec(_chain(tmp_path / "ok", MAX_SUBSYSTEM_DEPTH))
+    assert spec.blocks[0].name == "/".join(["s"] * MAX_SUBSYSTEM_DEPTH + ["g"])
+    assert spec.aliases["s.y"] == spec.blocks[0].name + ".y"
+    with pytest.raises(ConfigError, match=f"nested more than {MAX_SUBSYSTEM_DEPTH} deep"):
+        load_spec(_chain(tmp_path / "deep", MAX_SUBSYSTEM_DEPTH + 1))
+
+
+def test_self_inclusion_through_a_symbolic_link(tmp_path):
+    me = write(tmp_path, "me.yaml", """
+blocks:
+  again: {type: subsystem, file: link.yaml}
+""")
+    os.symlink(me, os.path.join(str(tmp_path), "link.yaml"))
+    with pytest.raises(ConfigError, match="includes itself: me.yaml -> link.yaml$"):
+        load_spec(me)
