@@ -45,7 +45,9 @@ def _two_link_params():
         "m1": "mass of link 1 (kg)",
         "l1": "length of link 1 (m)",
         "me": "mass of link 2 with its end effector (kg)",
-        "delta_e": "angle of the link-2 centre of mass off the link axis (degrees)",
+        "delta_e": "angle of the link-2 centre of mass off the link axis, measured from the "
+                   "centre of mass to the axis (degrees; the centre of mass is at absolute "
+                   "angle q1 + q2 - delta_e)",
         "I1": "inertia of link 1 about its centre of mass (kg m^2)",
         "lc1": "distance from joint 1 to the centre of mass of link 1 (m)",
         "Ie": "inertia of link 2 about its centre of mass (kg m^2)",
@@ -78,11 +80,14 @@ class TwoLinkArm(Block):
         H11 = a1 + 2 a3 cos q2 + 2 a4 sin q2,  H12 = H21 = a2 + a3 cos q2 + a4 sin q2,  H22 = a2,
         hh = a3 sin q2 - a4 cos q2,
         C = [[-hh qdot2, -hh (qdot1 + qdot2)], [hh qdot1, 0]],
-        g = [(m1 lc1 + me l1) g cos q1 + me lce g cos(q1 + q2 + delta_e),
-             me lce g cos(q1 + q2 + delta_e)]
+        g = [(m1 lc1 + me l1) g cos q1 + me lce g cos(q1 + q2 - delta_e),
+             me lce g cos(q1 + q2 - delta_e)]
 
     H is symmetric positive definite (Property 1), Hdot - 2C is skew-symmetric (Property 2),
-    and g = dP/dq with P = (m1 lc1 + me l1) g sin q1 + me lce g sin(q1 + q2 + delta_e).  The
+    and g = dP/dq with P = (m1 lc1 + me l1) g sin q1 + me lce g sin(q1 + q2 - delta_e): the
+    centre of mass of link 2 lies at absolute angle q1 + q2 - delta_e, which is where Slotine &
+    Li's H puts it (H12 = a2 + me l1 lce cos(q2 - delta_e)), so the vertical arm is one rigid
+    body (with "+ delta_e" in g, gravity would act on a mirrored link 2).  The
     2x2 system is solved in closed form.  ``tau_star`` (the paper's reference torque, e.g. a
     disturbance) is optional: unconnected, it is zero.  The lumped parameter vector theta of
     Property 3, matching the ``Regressor`` block, is ``TwoLinkArm.parameter_vector(**params)``.
@@ -185,7 +190,7 @@ class TwoLinkArm(Block):
         r2 = torque[:, 1] - hh * qd1 * qd1
         if self._gravity:
             q12 = q1 + q2
-            g2 = a6 * np.cos(q12) - a7 * np.sin(q12)
+            g2 = a6 * np.cos(q12) + a7 * np.sin(q12)
             r1 = r1 - a5 * np.cos(q1) - g2
             r2 = r2 - g2
         inv_det = 1.0 / (h11 * a2 - h12 * h12)
@@ -212,7 +217,7 @@ class TwoLinkArm(Block):
         r2 = (t2 + ts2) - hh * qd1 * qd1
         if self._gravity:
             q12 = q1 + q2
-            g2 = a6 * math.cos(q12) - a7 * math.sin(q12)
+            g2 = a6 * math.cos(q12) + a7 * math.sin(q12)
             r1 = r1 - a5 * math.cos(q1) - g2
             r2 = r2 - g2
         inv_det = 1.0 / (h11 * a2 - h12 * h12)
@@ -230,8 +235,8 @@ class Regressor(Block):
     given by ``TwoLinkArm.parameter_vector``:
 
         Y[0] = [zd1, zd2, c2 (2 zd1 + zd2) - s2 (qd2 z1 + (qd1 + qd2) z2),
-                s2 (2 zd1 + zd2) + c2 (qd2 z1 + (qd1 + qd2) z2), cos q1, cos q12, -sin q12]
-        Y[1] = [0, zd1 + zd2, c2 zd1 + s2 qd1 z1, s2 zd1 - c2 qd1 z1, 0, cos q12, -sin q12]
+                s2 (2 zd1 + zd2) + c2 (qd2 z1 + (qd1 + qd2) z2), cos q1, cos q12, sin q12]
+        Y[1] = [0, zd1 + zd2, c2 zd1 + s2 qd1 z1, s2 zd1 - c2 qd1 z1, 0, cos q12, sin q12]
 
     (the last three columns only with gravity).  The gravitational acceleration g is inside
     a5..a7, so only whether ``gravity`` is zero matters here: give it the same value as the
@@ -293,8 +298,8 @@ class Regressor(Block):
             Y[:, 0, 4] = np.cos(q[:, 0])
             Y[:, 0, 5] = c12
             Y[:, 1, 5] = c12
-            Y[:, 0, 6] = -s12
-            Y[:, 1, 6] = -s12
+            Y[:, 0, 6] = s12
+            Y[:, 1, 6] = s12
         return (Y,)
 
     def _output_single(self, q, qdot, zeta, zetad):
@@ -313,8 +318,8 @@ class Regressor(Block):
         if self._gravity:
             c12 = math.cos(q1 + q2)
             s12 = math.sin(q1 + q2)
-            row1 += [math.cos(q1), c12, -s12]
-            row2 += [0.0, c12, -s12]
+            row1 += [math.cos(q1), c12, s12]
+            row2 += [0.0, c12, s12]
         return np.array([[row1, row2]])
 
 

@@ -30,7 +30,7 @@ def reference_terms(prm: dict, gravity: float, q, qdot):
                   [a2 + a3 * c2 + a4 * s2, a2]])
     hh = a3 * s2 - a4 * c2
     C = np.array([[-hh * qdot[1], -hh * (qdot[0] + qdot[1])], [hh * qdot[0], 0.0]])
-    ce = math.cos(q[0] + q[1] + de)
+    ce = math.cos(q[0] + q[1] - de)
     g = np.array([(m1 * lc1 + me * l1) * gravity * math.cos(q[0]) + me * lce * gravity * ce,
                   me * lce * gravity * ce])
     dH_dq2 = np.array([[-2 * a3 * s2 + 2 * a4 * c2, -a3 * s2 + a4 * c2],
@@ -41,7 +41,18 @@ def reference_terms(prm: dict, gravity: float, q, qdot):
 def potential(prm: dict, gravity: float, q):
     de = math.radians(prm["delta_e"])
     return ((prm["m1"] * prm["lc1"] + prm["me"] * prm["l1"]) * gravity * np.sin(q[..., 0])
-            + prm["me"] * prm["lce"] * gravity * np.sin(q[..., 0] + q[..., 1] + de))
+            + prm["me"] * prm["lce"] * gravity * np.sin(q[..., 0] + q[..., 1] - de))
+
+
+def centres_of_mass(prm: dict, q):
+    """Positions of the two centres of mass (link 2's at absolute angle q1 + q2 - delta_e,
+    where Slotine & Li's H puts it), (2, 2) rows = bodies."""
+    de = math.radians(prm["delta_e"])
+    q12 = q[0] + q[1] - de
+    return np.array([
+        [prm["lc1"] * math.cos(q[0]), prm["lc1"] * math.sin(q[0])],
+        [prm["l1"] * math.cos(q[0]) + prm["lce"] * math.cos(q12),
+         prm["l1"] * math.sin(q[0]) + prm["lce"] * math.sin(q12)]])
 
 
 def rk4(f, x0, dt, steps):
@@ -117,6 +128,42 @@ def test_property1_inertia_symmetric_positive_definite(prm):
         np.testing.assert_array_equal(H, H.T)
         lowest.append(np.linalg.eigvalsh(H)[0])
     assert min(lowest) > 0.05
+
+
+@pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
+def test_model_is_the_rigid_two_link_arm(prm):
+    """H, C qdot and g agree with Lagrange's equations for the two rigid bodies: kinetic
+    energy sum_i (m_i |v_i|^2 + I_i omega_i^2) / 2 and potential g sum_i m_i y_i, from
+    finite differences of the centre-of-mass positions (independent of the a1..a7 algebra)."""
+    rng = np.random.default_rng(9)
+    gravity, h = 9.81, 1e-6
+    masses = np.array([prm["m1"], prm["me"]])
+    for _ in range(20):
+        q = rng.uniform(-math.pi, math.pi, 2)
+        qdot = rng.uniform(-3.0, 3.0, 2)
+        J = np.stack([(centres_of_mass(prm, q + h * e) - centres_of_mass(prm, q - h * e)) / (2 * h)
+                      for e in np.eye(2)], axis=-1)            # (body, xy, joint)
+        Jw = np.array([[1.0, 0.0], [1.0, 1.0]])              # body angular rates
+        H_rigid = (sum(masses[i] * J[i].T @ J[i] for i in range(2))
+                   + prm["I1"] * np.outer(Jw[0], Jw[0]) + prm["Ie"] * np.outer(Jw[1], Jw[1]))
+
+        def potential_rigid(qq):
+            return gravity * masses @ centres_of_mass(prm, qq)[:, 1]
+
+        g_rigid = np.array([(potential_rigid(q + h * e) - potential_rigid(q - h * e)) / (2 * h)
+                            for e in np.eye(2)])
+        H, C, g, dH_dq2 = reference_terms(prm, gravity, q, qdot)
+        np.testing.assert_allclose(H, H_rigid, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(g, g_rigid, rtol=0, atol=1e-7)
+        # Lagrange: C qdot = Hdot qdot - d/dq (qdot^T H qdot / 2)
+        dT_dq2 = 0.5 * qdot @ dH_dq2 @ qdot
+        np.testing.assert_allclose(C @ qdot, dH_dq2 * qdot[1] @ qdot - [0.0, dT_dq2],
+                                   rtol=0, atol=1e-12)
+        # and the blocks agree with this reference (gravity column signs included)
+        arm = TwoLinkArm("arm", **prm, gravity=gravity)
+        dx = arm.derivative(0.0, np.hstack([q, qdot])[None], (np.zeros((1, 2)),) * 2)
+        np.testing.assert_allclose(dx[0, 2:], np.linalg.solve(H_rigid, -C @ qdot - g_rigid),
+                                   rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("prm", [SLOTINE_LI, OTHER_ARM])
