@@ -11,14 +11,14 @@ import os
 import sys
 
 from .errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
-                     OutputError, SimulationError)
+                     OutputError, SimulationError, one_line)
 from .result import RESULT_FILE, SUMMARY_FILE
 
 EXIT_OK, EXIT_INPUT, EXIT_DIVERGED, EXIT_BLOCK, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
 
 
 def _err(msg: str) -> None:
-    print(f"fwdstep: {msg}", file=sys.stderr)
+    print(f"fwdstep: {one_line(str(msg))}", file=sys.stderr)
 
 
 def _overrides(pairs) -> dict:

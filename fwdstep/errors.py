@@ -8,6 +8,11 @@ as one line and exits 2 for a ``DiagramError``; nothing here prints.
 from __future__ import annotations
 
 
+def one_line(text: str) -> str:
+    """Messages are one line: newlines (from multi-line YAML values) become spaces."""
+    return " ".join(text.splitlines()) if "\n" in text or "\r" in text else text
+
+
 class FwdstepError(Exception):
     """Base class of every error fwdstep raises on purpose."""
 
@@ -32,7 +37,7 @@ class DiagramError(FwdstepError):
         where = ""
         if self.file:
             where = f"{self.file}:{self.line}: " if self.line else f"{self.file}: "
-        return f"{where}{self.message}"
+        return one_line(f"{where}{self.message}")
 
     def located(self, file: str | None, line: int | None = None) -> "DiagramError":
         """Return this error with the file (and line, if not already known) filled in."""

@@ -21,6 +21,9 @@ MAX_EXPRESSION_LENGTH = 2000
 MAX_ARRAY_SIZE = 1_000_000
 
 
+MAX_WORK = 100_000_000          # multiply-adds one operation may cost (matmul, polymul)
+
+
 def _size_arg(n) -> int:
     n = float(np.asarray(n))
     if n != math.floor(n) or n < 0:
@@ -30,8 +33,75 @@ def _size_arg(n) -> int:
     return int(n)
 
 
+def _numbers(count: int, what: str) -> None:
+    """Refuse, before allocating, a result of more than MAX_ARRAY_SIZE numbers."""
+    if count > MAX_ARRAY_SIZE:
+        raise ValueError(f"{what} would have {count} numbers (limit {MAX_ARRAY_SIZE})")
+
+
+def _shape_of(*sizes) -> tuple:
+    shape = tuple(_size_arg(v) for v in sizes)
+    _numbers(math.prod(shape), "the array")
+    return shape
+
+
+def _eye(n):
+    n = _size_arg(n)
+    _numbers(n * n, "the identity matrix")
+    return np.eye(n)
+
+
+def _diag(v):
+    v = np.asarray(v, dtype=float)
+    if v.ndim == 1:
+        _numbers(v.size * v.size, "the diagonal matrix")
+    return np.diag(v)
+
+
 def _binom(n, k):
-    return float(math.comb(int(n), int(k)))
+    return float(math.comb(_size_arg(n), _size_arg(k)))
+
+
+def _poly(a) -> np.ndarray:
+    return np.atleast_1d(np.asarray(a, dtype=float))
+
+
+def _polymul(a, b):
+    a, b = _poly(a), _poly(b)
+    if a.ndim != 1 or b.ndim != 1:
+        raise ValueError("polynomials are vectors of coefficients")
+    if a.size * b.size > MAX_WORK:
+        raise ValueError(f"polynomials of {a.size} and {b.size} coefficients are too long")
+    return np.polymul(a, b)
+
+
+def _polypow(a, n):
+    n = _size_arg(n)
+    a = _poly(a)
+    if n > 200:
+        raise ValueError(f"power {n} is too large (limit 200)")
+    if a.ndim != 1:
+        raise ValueError("a polynomial is a vector of coefficients")
+    if (a.size * n) ** 2 > MAX_WORK:
+        raise ValueError(f"a polynomial of {a.size} coefficients to the power {n} is too long")
+    out = np.array([1.0])
+    for _ in range(n):
+        out = np.polymul(out, a)
+    return out
+
+
+def _concat(*arrays):
+    parts = [np.atleast_1d(np.asarray(v, dtype=float)) for v in arrays]
+    _numbers(sum(p.size for p in parts), "the concatenation")
+    return np.concatenate(parts)
+
+
+def _extremum(reduce):
+    def f(*a):
+        if not a:
+            raise ValueError("needs at least one argument")
+        return reduce(np.array(a, dtype=float)) if len(a) > 1 else reduce(a[0])
+    return f
 
 
 FUNCTIONS = {
@@ -40,30 +110,19 @@ FUNCTIONS = {
     "sinh": np.sinh, "cosh": np.cosh, "tanh": np.tanh,
     "exp": np.exp, "log": np.log, "log10": np.log10, "abs": np.abs,
     "floor": np.floor, "ceil": np.ceil, "round": np.round,
-    "min": lambda *a: np.min(np.array(a, dtype=float)) if len(a) > 1 else np.min(a[0]),
-    "max": lambda *a: np.max(np.array(a, dtype=float)) if len(a) > 1 else np.max(a[0]),
+    "min": _extremum(np.min), "max": _extremum(np.max),
     "radians": np.radians, "degrees": np.degrees, "binom": _binom,
-    "eye": lambda n: np.eye(_size_arg(n)),
-    "zeros": lambda *s: np.zeros(tuple(_size_arg(v) for v in s)),
-    "ones": lambda *s: np.ones(tuple(_size_arg(v) for v in s)),
-    "diag": lambda v: np.diag(np.asarray(v, dtype=float)),
+    "eye": _eye,
+    "zeros": lambda *s: np.zeros(_shape_of(*s)),
+    "ones": lambda *s: np.ones(_shape_of(*s)),
+    "diag": _diag,
     "transpose": lambda a: np.transpose(np.asarray(a, dtype=float)),
     # polynomials as coefficient vectors, highest power first (numpy.polyval order)
-    "concat": lambda *a: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in a]),
-    "polymul": lambda a, b: np.polymul(np.atleast_1d(a), np.atleast_1d(b)),
-    "polyadd": lambda a, b: np.polyadd(np.atleast_1d(a), np.atleast_1d(b)),
-    "polypow": lambda a, n: _polypow(a, n),
+    "concat": _concat,
+    "polymul": _polymul,
+    "polyadd": lambda a, b: np.polyadd(_poly(a), _poly(b)),
+    "polypow": _polypow,
 }
-
-
-def _polypow(a, n):
-    n = _size_arg(n)
-    if n > 200:
-        raise ValueError(f"power {n} is too large (limit 200)")
-    out = np.array([1.0])
-    for _ in range(n):
-        out = np.polymul(out, np.atleast_1d(np.asarray(a, dtype=float)))
-    return out
 
 CONSTANTS = {"pi": math.pi, "e": math.e}
 
@@ -95,20 +154,23 @@ def names_in(text: str) -> set[str]:
 def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") -> Any:
     """Evaluate ``text`` with names from ``namespace``; raise ``ExpressionError``."""
     src = text.strip()
+    shown = " ".join(src.split())          # as written, on one line, for messages
     if len(src) > MAX_EXPRESSION_LENGTH:
         raise ExpressionError(f"{what}: expression is {len(src)} characters long "
                               f"(limit {MAX_EXPRESSION_LENGTH})")
     try:
         tree = ast.parse(src, mode="eval")
     except (SyntaxError, ValueError) as exc:
-        raise ExpressionError(f"{what}: cannot parse expression '{src}': "
+        raise ExpressionError(f"{what}: cannot parse expression '{shown}': "
                               f"{getattr(exc, 'msg', exc)}") from None
     except (RecursionError, MemoryError):
-        raise ExpressionError(f"{what}: expression '{src[:60]}' is nested too deeply") from None
+        raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
+    evaluator = _Evaluator(shown, namespace, what)
     try:
-        value = _Evaluator(src, namespace, what).visit(tree.body)
+        evaluator.screen(tree.body)
+        value = evaluator.visit(tree.body)
     except RecursionError:
-        raise ExpressionError(f"{what}: expression '{src[:60]}' is nested too deeply") from None
+        raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
     return value
 
 
@@ -120,6 +182,19 @@ class _Evaluator:
 
     def fail(self, msg: str) -> ExpressionError:
         return ExpressionError(f"{self.what}: expression '{self.src}' {msg}")
+
+    def screen(self, tree) -> None:
+        """Refuse forbidden constructs anywhere in the tree before evaluating anything, so
+        the message names the construct itself (``__import__``, a lambda), not a symptom."""
+        nodes = list(ast.walk(tree))
+        for node in nodes:
+            if isinstance(node, ast.Name) and node.id.startswith("__"):
+                raise self.fail(f"uses the name '{node.id}'; names starting with '__' are "
+                                "never allowed")
+        for node in nodes:
+            for kind, label in _FORBIDDEN.items():
+                if isinstance(node, kind):
+                    raise self.fail(f"uses a forbidden construct ({label})")
 
     def visit(self, node):
         for kind, label in _FORBIDDEN.items():
@@ -133,8 +208,11 @@ class _Evaluator:
     def visit_Constant(self, node):
         v = node.value
         if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.fail(f"contains a literal {v!r} that is not a number")
-        return float(v)
+            raise self.fail(f"contains a literal {v!r} that is not a number"[:200])
+        try:
+            return self._check(float(v))
+        except OverflowError:
+            raise self.fail("contains an integer too large to be a number") from None
 
     def visit_Name(self, node):
         if node.id in self.ns:
@@ -147,12 +225,17 @@ class _Evaluator:
         raise self.fail(f"refers to undefined name '{node.id}'; defined names are: {known}")
 
     def visit_List(self, node):
-        items = [self.visit(e) for e in node.elts]
+        items, total = [], 0
+        for e in node.elts:
+            items.append(self.visit(e))
+            total += int(np.size(items[-1]))
+            if total > MAX_ARRAY_SIZE:
+                raise self.fail(f"builds a list of more than {MAX_ARRAY_SIZE} numbers")
         try:
             arr = np.array(items, dtype=float)
         except (ValueError, TypeError):
             raise self.fail("builds a list that is not a rectangular array of numbers") from None
-        return arr
+        return self._check(arr)
 
     visit_Tuple = visit_List
 
@@ -168,10 +251,12 @@ class _Evaluator:
         op = _BINOPS.get(type(node.op))
         if op is None:
             raise self.fail(f"uses a forbidden operator ({type(node.op).__name__})")
-        a, b = self.visit(node.left), self.visit(node.right)
+        a = np.asarray(self.visit(node.left), dtype=float)
+        b = np.asarray(self.visit(node.right), dtype=float)
         try:
+            self._precheck(op, a.shape, b.shape)
             with np.errstate(over="raise", invalid="raise", divide="raise"):
-                res = op(np.asarray(a, dtype=float), np.asarray(b, dtype=float))
+                res = op(a, b)
         except FloatingPointError as exc:
             raise self.fail(f"cannot be evaluated: {exc} (the result is too large or undefined)"
                             ) from None
@@ -194,9 +279,28 @@ class _Evaluator:
                 res = FUNCTIONS[name](*args)
         except FloatingPointError as exc:
             raise self.fail(f"cannot be evaluated: {exc}") from None
-        except (ValueError, TypeError, OverflowError) as exc:
-            raise self.fail(f"cannot be evaluated: {name}(): {exc}") from None
+        except (ValueError, TypeError, OverflowError, IndexError, ZeroDivisionError) as exc:
+            raise self.fail(f"cannot be evaluated: {name}(): {exc}"[:400]) from None
         return self._check(np.asarray(res, dtype=float) if not isinstance(res, float) else res)
+
+    @staticmethod
+    def _precheck(op, sa: tuple, sb: tuple) -> None:
+        """Refuse an operation whose result or cost is too large, before doing it."""
+        if op is np.matmul:
+            if not sa or not sb:
+                return                          # numpy refuses scalars itself
+            a2 = sa if len(sa) > 1 else (1,) + sa
+            b2 = sb if len(sb) > 1 else sb + (1,)
+            if a2[-1] != b2[-2]:
+                return                          # numpy explains the mismatch itself
+            out = np.broadcast_shapes(a2[:-2], b2[:-2]) + (a2[-2], b2[-1])
+            size = math.prod(out)
+            if size > MAX_ARRAY_SIZE or size * a2[-1] > MAX_WORK:
+                raise ValueError(f"the product of {sa} and {sb} arrays is too large")
+            return
+        size = math.prod(np.broadcast_shapes(sa, sb))
+        if size > MAX_ARRAY_SIZE:
+            raise ValueError(f"the result would have {size} numbers (limit {MAX_ARRAY_SIZE})")
 
     def _check(self, value):
         arr = np.asarray(value)

@@ -130,7 +130,8 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
             "blocks " + " -> ".join(a for a, _ in cyc) + f" -> {cyc[0][0]} form a loop that is "
             "only broken inside a block whose outputs have different feedthrough; fwdstep "
             "evaluates each block once per stage, so split that block in two",
-            file=spec.file) from None
+            file=entry_of[cyc[0][0]].file if cyc[0][0] in entry_of else spec.file,
+            line=entry_of[cyc[0][0]].line if cyc[0][0] in entry_of else None) from None
     return Structure(spec=spec, blocks=[by_name[n] for n in order], drivers=drivers, graph=g)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from .errors import (ConfigError, DiagramError, ExpressionError, ParameterError, WiringError,
                      YamlError)
-from .expressions import evaluate, names_in
+from .expressions import MAX_ARRAY_SIZE, evaluate, names_in
 from .registry import lookup
 from .yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
 
@@ -91,13 +91,30 @@ class DiagramSpec:
 
 
 # ---------------------------------------------------------------------------- helpers
+def kind_of(value) -> str:
+    """What a YAML value is, in the words of the diagram format ('a list', 'a number')."""
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "a mapping"
+    return f"a {type(value).__name__}"
+
+
 def _mapping(value, what: str, file: str, line: int | None) -> LineDict:
     if value is None:
         out = LineDict()
         out.line, out.key_lines = line, {}
         return out
     if not isinstance(value, dict):
-        raise ConfigError(f"'{what}' must be a mapping, got {type(value).__name__}", file=file,
+        raise ConfigError(f"'{what}' must be a mapping, got {kind_of(value)}", file=file,
                           line=line)
     return value
 
@@ -113,7 +130,12 @@ def evaluate_value(value: Any, namespace: dict, what: str):
     if isinstance(value, str):
         return evaluate(value, namespace, what)
     if isinstance(value, list):
-        items = [evaluate_value(v, namespace, what) for v in value]
+        items, total = [], 0
+        for v in value:
+            items.append(evaluate_value(v, namespace, what))
+            total += int(np.size(items[-1])) if items[-1] is not None else 1
+            if total > MAX_ARRAY_SIZE:
+                raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
         if any(isinstance(v, (bool, np.bool_)) for v in items):
             raise ExpressionError(f"{what}: a list may contain only numbers")
         try:
@@ -126,9 +148,14 @@ def evaluate_value(value: Any, namespace: dict, what: str):
     if isinstance(value, bool) or value is None:
         return value
     if isinstance(value, (int, float)):
-        if not math.isfinite(value):
+        try:
+            number = float(value)
+        except OverflowError:
+            raise ExpressionError(f"{what}: the integer {str(value)[:12]}... is too large to be a "
+                                  "number") from None
+        if not math.isfinite(number):
             raise ExpressionError(f"{what}: value {value} is not finite")
-        return float(value)
+        return number
     return value
 
 
@@ -163,9 +190,13 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
     values = dict(raw)
     for name, value in (overrides or {}).items():
         if name not in values:
+            import difflib
             known = ", ".join(values) or "(none)"
+            close = difflib.get_close_matches(name, list(values), n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
             raise ConfigError(f"--set {name}=...: the diagram has no parameter '{name}'; "
-                              f"parameters are: {known}", file=file)
+                              f"{hint}parameters are: {known}", file=file,
+                              line=getattr(raw, "line", None) if values else None)
         values[name] = value
     namespace: dict = dict(preset or {})
     pending = {k: v for k, v in values.items() if k not in namespace}
@@ -315,6 +346,10 @@ class _Level:
         if len(self.stack) > MAX_SUBSYSTEM_DEPTH:     # stack = this file and its parents
             raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
                               file=file, line=line)
+        if not os.path.isfile(path):
+            why = "is a directory" if os.path.isdir(path) else "does not exist"
+            raise ConfigError(f"subsystem '{self.full(name)}': file '{body['file']}' {why} "
+                              f"(looked for {path})", file=file, line=_line(body, "file"))
         child_doc = _read_document(path)
         passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
         overrides = {}
@@ -414,10 +449,10 @@ def _read_document(path: str) -> LineDict:
     doc = read_yaml_file(path)
     if doc is None:
         raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
-                        file=path)
+                        file=path, line=1)
     if not isinstance(doc, dict):
-        raise YamlError(f"the top level must be a mapping (blocks:, connections:, ...), got a "
-                        f"{type(doc).__name__}", file=path, line=getattr(doc, "line", 1))
+        raise YamlError(f"the top level must be a mapping (blocks:, connections:, ...), got "
+                        f"{kind_of(doc)}", file=path, line=getattr(doc, "line", 1))
     for key in doc:
         if key not in TOP_LEVEL_KEYS:
             import difflib

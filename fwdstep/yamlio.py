@@ -40,7 +40,13 @@ class LineList(list):
 
 
 class _DiagramLoader(yaml.SafeLoader):
-    pass
+    #: id() of the node under the top-level ``blocks:`` key (its keys are block names)
+    blocks_node_id: int | None = None
+    _current_scalar: yaml.Node | None = None
+
+    def construct_scalar(self, node):
+        self._current_scalar = node      # remembered for errors raised while converting it
+        return super().construct_scalar(node)
 
 
 def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode):
@@ -55,7 +61,8 @@ def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode):
             raise YamlError(f"a mapping key must be a plain value, not {type(key).__name__}",
                             line=key_node.start_mark.line + 1) from None
         if key in seen:
-            raise YamlError(f"duplicate key '{key}' (first defined at line {seen[key]}); "
+            what = "block name" if id(node) == loader.blocks_node_id else "key"
+            raise YamlError(f"duplicate {what} '{key}' (first defined at line {seen[key]}); "
                             "YAML would silently keep only the last one",
                             line=key_node.start_mark.line + 1)
         seen[key] = key_node.start_mark.line + 1
@@ -121,6 +128,35 @@ def _expanded_size(node: yaml.Node, memo: dict, limit: int) -> int:
     return size
 
 
+def _bomb_line(root: yaml.Node) -> int:
+    """The line of the top-level entry at which alias expansion passes the limit."""
+    children = []
+    if isinstance(root, yaml.SequenceNode):
+        children = [(c, c) for c in root.value]
+    elif isinstance(root, yaml.MappingNode):
+        children = list(root.value)
+    total, memo = 1, {}
+    for first, value in children:
+        total += _expanded_size(value, memo, MAX_EXPANDED_NODES) + (first is not value)
+        if total > MAX_EXPANDED_NODES:
+            return first.start_mark.line + 1
+    return root.start_mark.line + 1
+
+
+def _blocks_node_id(root: yaml.Node) -> int | None:
+    if isinstance(root, yaml.MappingNode):
+        for key_node, value_node in root.value:
+            if isinstance(key_node, yaml.ScalarNode) and key_node.value == "blocks":
+                return id(value_node)
+    return None
+
+
+def _value_error_line(loader: yaml.SafeLoader) -> int | None:
+    """Best effort: the line of the scalar being constructed when a ValueError escaped."""
+    node = getattr(loader, "_current_scalar", None)
+    return node.start_mark.line + 1 if node is not None else None
+
+
 def parse_yaml_text(text: str, file: str | None = None):
     """Parse YAML text into LineDict/LineList/scalars, with every safety check."""
     loader = _DiagramLoader(text)
@@ -136,7 +172,9 @@ def parse_yaml_text(text: str, file: str | None = None):
             return None
         if _expanded_size(node, {}, MAX_EXPANDED_NODES) > MAX_EXPANDED_NODES:
             raise YamlError(f"the document expands to more than {MAX_EXPANDED_NODES} nodes "
-                            "through aliases (&anchor/*alias); refused", file=file)
+                            "through aliases (&anchor/*alias); refused", file=file,
+                            line=_bomb_line(node))
+        loader.blocks_node_id = _blocks_node_id(node)
         try:
             return loader.construct_document(node)
         except YamlError as exc:
@@ -147,6 +185,11 @@ def parse_yaml_text(text: str, file: str | None = None):
                             line=mark.line + 1 if mark else None) from None
         except RecursionError:
             raise YamlError("the document is nested too deeply", file=file) from None
+        except (ValueError, OverflowError) as exc:
+            # e.g. an integer literal of more than 4300 digits (Python's int-parsing limit)
+            reason = str(exc).split(";")[0]
+            raise YamlError(f"not valid YAML: a value cannot be read: {reason}"[:300], file=file,
+                            line=_value_error_line(loader)) from None
     finally:
         loader.dispose()
 
