@@ -11,3 +11,4 @@ from . import linear  # noqa: F401,E402   Integrator, TransferFunction, StateSpa
 from . import reference  # noqa: F401,E402 ReferenceDynamics
 from . import robot  # noqa: F401,E402    TwoLinkArm, Regressor, PointMass, ...
 from . import adaptation  # noqa: F401,E402 AdaptationLaw
+from . import stacked  # noqa: F401,E402  FilterDerivatives, TransferFunctionSum, LinearCombination
