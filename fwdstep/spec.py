@@ -288,7 +288,8 @@ class _Level:
                 raise ConfigError(f"block '{name}' must be a mapping with a 'type:' key",
                                   file=file, line=line)
             if "type" not in body:
-                raise ConfigError(f"block '{name}' has no 'type:'", file=file, line=line)
+                raise ConfigError(f"block '{name}' has no 'type:' (the block type, e.g. 'type: Gain'; "
+                              "'fwdstep blocks' lists them)", file=file, line=line)
             if body["type"] == "subsystem":
                 self._expand_subsystem(name, body, line)
             else:
@@ -472,6 +473,9 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
                               f"{', '.join(SIMULATION_KEYS)}", file=file, line=_line(raw, key))
 
     def number(key):
+        if isinstance(raw[key], float) and not math.isfinite(raw[key]):
+            raise ConfigError(f"simulation.{key} must be a finite number, got {raw[key]}",
+                              file=file, line=_line(raw, key))
         try:
             v = evaluate_value(raw[key], ns, f"simulation.{key}")
         except DiagramError as exc:

@@ -85,7 +85,8 @@ def _construct_sequence(loader: yaml.SafeLoader, node: yaml.SequenceNode):
 
 
 def _refuse_tag(loader: yaml.SafeLoader, tag_suffix: str, node: yaml.Node):
-    raise YamlError(f"tag '{node.tag}' is not allowed: diagrams may contain only plain YAML "
+    tag = node.tag.replace("tag:yaml.org,2002:", "!!")
+    raise YamlError(f"tag '{tag}' is not allowed: diagrams may contain only plain YAML "
                     "(mappings, lists, numbers, strings, booleans)",
                     line=node.start_mark.line + 1)
 
