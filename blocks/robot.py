@@ -435,3 +435,237 @@ class PointMassRegressor(Block):
         Y = np.zeros((zetad.shape[0], self._n, self._n))
         Y[:, self._diag, self._diag] = zetad
         return (Y,)
+
+
+# --------------------------------------------------------------------------- n-link arm
+MAX_LINKS = 100
+
+
+def _n_link_values(block_name, lengths, masses, com, com_angle, inertias):
+    """Validated per-link arrays (lengths, masses, com, com_angle in rad, inertias)."""
+    def fail(message):
+        return ParameterError(f"block {block_name!r} {message}", block=block_name)
+
+    lengths = np.atleast_1d(np.asarray(lengths, dtype=float))
+    if lengths.ndim != 1 or lengths.size < 1 or np.any(lengths <= 0.0):
+        raise fail(f"parameter 'lengths' must be a list of positive link lengths, got "
+                   f"{lengths.tolist()}")
+    if lengths.size > MAX_LINKS:
+        raise fail(f"has {lengths.size} links (limit {MAX_LINKS})")
+    n = lengths.size
+
+    def per_link(key, value, default):
+        arr = np.asarray(default if value is None else value, dtype=float)
+        if arr.ndim == 0:
+            arr = np.full(n, float(arr))
+        if arr.shape != (n,):
+            raise fail(f"parameter {key!r} must be a number or {n} numbers (one per link), "
+                       f"got shape {arr.shape}")
+        return arr
+
+    masses = per_link("masses", masses, 1.0)
+    com = per_link("com", com, lengths / 2.0)
+    angle = np.radians(per_link("com_angle", com_angle, 0.0))
+    inertias = per_link("inertias", inertias, masses * lengths ** 2 / 12.0)
+    if np.any(masses <= 0.0):
+        raise fail(f"parameter 'masses' must be positive, got {masses.tolist()}")
+    if np.any(com < 0.0) or np.any(inertias < 0.0):
+        raise fail("parameters 'com' and 'inertias' must not be negative")
+    if np.any(inertias + masses * com ** 2 <= 0.0):
+        raise fail("has a link with no inertia about its joint (inertias + masses com^2 = 0): "
+                   "the inertia matrix would be singular")
+    return lengths, masses, com, angle, inertias
+
+
+def n_link_theta(masses, com, angle, inertias) -> np.ndarray:
+    """[m_i, m_i lc_i cos(angle_i), m_i lc_i sin(angle_i), I_i + m_i lc_i^2] for i = 1..n."""
+    return np.stack([masses, masses * com * np.cos(angle), masses * com * np.sin(angle),
+                     inertias + masses * com ** 2], axis=1).reshape(-1)
+
+
+def _n_link_geometry(q, lengths, mask):
+    """E_i = exp(j phi_i) with phi_i = q_1 + ... + q_i, and G[b, i, k] = O_i - O_k (joint
+    origins as complex numbers) for k <= i, 0 above the diagonal (``mask`` [1, i, k])."""
+    E = np.exp(1j * np.cumsum(q, axis=1))                         # (B, n)
+    lE = lengths * E
+    O = np.cumsum(lE, axis=1) - lE                                 # O_1 = 0, O_2, ..., O_n
+    G = (O[:, :, None] - O[:, None, :]) * mask                     # (B, i, k)
+    return E, G
+
+
+def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
+    """Y (B, n, 4n): H zetad + C zeta + g = Y theta with C = sum_i m_i Jv_i^T Jv_i' (so
+    Hdot - 2C is skew-symmetric), theta ordered per link [m, sx, sy, J] as n_link_theta;
+    E, G from ``_n_link_geometry``."""
+    psi = np.cumsum(zeta, axis=1)
+    psid = np.cumsum(zetad, axis=1)
+    phid = np.cumsum(qdot, axis=1)
+    Q = E * (1j * psid - phid * psi)                       # joint-frame "acceleration" terms
+    lQ = lengths * Q
+    A0 = np.cumsum(lQ, axis=1) - lQ                        # sum_{j<i} l_j Q_j
+    Gc = np.conj(G)
+    Y_m = np.imag(Gc * A0[:, :, None]) + gravity[:, None, None] * np.real(G)    # (B, i, k)
+    X = np.conj(E) * A0                                                        # (B, i)
+    Z = Gc * Q[:, :, None]                                                     # (B, i, k)
+    gcos = gravity[:, None] * np.real(E)
+    gsin = gravity[:, None] * np.imag(E)
+    Y_sx = mask * (np.imag(X) + gcos)[:, :, None] + np.imag(Z)
+    Y_sy = mask * (gsin * -1.0 - np.real(X))[:, :, None] + np.real(Z)
+    Y_J = mask * psid[:, :, None]
+    Y = np.stack([Y_m, Y_sx, Y_sy, Y_J], axis=-1)          # (B, i, k, 4)
+    B, n = Y.shape[0], Y.shape[1]
+    return Y.transpose(0, 2, 1, 3).reshape(B, n, 4 * n)
+
+
+@register
+class NLinkArm(Block):
+    """Planar n-link arm with revolute joints: H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star.
+
+    Equation (1) of the paper for a serial chain moving in a vertical (gravity != 0) or
+    horizontal plane.  Link i has length l_i, mass m_i, its centre of mass at distance lc_i
+    from joint i and at absolute angle q_1 + ... + q_i + com_angle_i, and inertia I_i about
+    its centre of mass.  With Jv_i the Jacobian of that centre of mass,
+    H = sum_i (m_i Jv_i^T Jv_i + I_i Jw_i^T Jw_i), C = sum_i m_i Jv_i^T dJv_i/dt (so Hdot - 2C
+    is skew-symmetric, Property 2), g = dP/dq with P = gravity sum_i m_i y_i.  The lumped
+    parameters of Property 3, matching ``NLinkRegressor``, are, per link,
+    [m_i, m_i lc_i cos(com_angle_i), m_i lc_i sin(com_angle_i), I_i + m_i lc_i^2]
+    (``NLinkArm.parameter_vector``).  ``TwoLinkArm`` is this arm with n = 2,
+    com_angle = [0, -delta_e].  ``tau_star`` is optional: unconnected, it is zero.  The
+    accelerations come from a batched linear solve.  State order: q (n), then qdot (n).
+
+    Ports:
+        | port     | direction | shape | feedthrough |
+        | tau      | in        | (n,)  | -           |
+        | tau_star | in        | (n,)  | -           |
+        | q        | out       | (n,)  | -           |
+        | qdot     | out       | (n,)  | -           |
+
+    Parameters:
+        lengths: the n link lengths (m); n is their number.
+        masses: link masses (one number for all, or n; default 1).
+        com: distances from each joint to its link's centre of mass (default: lengths / 2).
+        com_angle: angle of each centre of mass off its link's axis (degrees; default 0).
+        inertias: inertias about the centres of mass (default: uniform rods, m l^2 / 12).
+        gravity: gravitational acceleration in the plane (default 0: horizontal plane).
+        q0, qdot0: initial joint positions and velocities (one number or n numbers).
+    """
+
+    params = {
+        "lengths": Param("array", [1.0, 1.0], "link lengths (m), one per link"),
+        "masses": Param("array", 1.0, "link masses (kg): scalar or one per link"),
+        "com": Param("array", None, "joint-to-centre-of-mass distances (default lengths / 2)"),
+        "com_angle": Param("array", 0.0, "centre-of-mass angles off the link axes (degrees)"),
+        "inertias": Param("array", None, "inertias about the centres of mass (default m l^2/12)"),
+        "gravity": Param("float", 0.0, "gravitational acceleration (0: horizontal plane)"),
+        "q0": Param("array", 0.0, "initial joint positions, scalar or (n,)"),
+        "qdot0": Param("array", 0.0, "initial joint velocities, scalar or (n,)"),
+    }
+    example = {"lengths": [1.0, 0.8, 0.5], "masses": [2.0, 1.0, 0.5], "gravity": 9.81,
+               "q0": [0.1, 0.2, -0.3]}
+
+    @staticmethod
+    def parameter_vector(lengths=(1.0, 1.0), masses=1.0, com=None, com_angle=0.0,
+                         inertias=None, **ignored) -> np.ndarray:
+        """The true theta (4n) for ``NLinkRegressor``; gravity, q0, qdot0 are ignored."""
+        _, m, lc, angle, inertia = _n_link_values("NLinkArm", lengths, masses, com,
+                                                  com_angle, inertias)
+        return n_link_theta(m, lc, angle, inertia)
+
+    def setup(self, lengths, masses, com, com_angle, inertias, gravity, q0, qdot0):
+        lengths, m, lc, angle, inertia = _n_link_values(self.name, lengths, masses, com,
+                                                        com_angle, inertias)
+        n = self._n = lengths.size
+        self.declare_input("tau", (n,))
+        self.declare_input("tau_star", (n,), optional=True)
+        self.declare_output("q", (n,), feedthrough=())
+        self.declare_output("qdot", (n,), feedthrough=())
+        self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
+                                                  _vector_param(self, "qdot0", qdot0, n)]))
+        self.state_labels = [f"q{i + 1}" for i in range(n)] + [f"qdot{i + 1}" for i in range(n)]
+        self.set_param("lengths", lengths)
+        self.set_param("theta", n_link_theta(m, lc, angle, inertia))
+        self.set_param("gravity", gravity)
+        # sum_{i >= max(k, l)} J_i is added to H through this mask product
+        self._mask = np.triu(np.ones((n, n)))                     # [k, i] = (k <= i)
+        self._mask_ik = self._mask.T[None]                         # [., i, k]
+        self.finalize(1)
+
+    def finalize(self, batch: int) -> None:
+        theta = self.p.theta.reshape(self.p.theta.shape[0], self._n, 4)
+        self._m = theta[:, :, 0]
+        self._s = theta[:, :, 1] + 1j * theta[:, :, 2]
+        self._J_cum = np.einsum("ki,li,bi->bkl", self._mask, self._mask, theta[:, :, 3])
+
+    def output(self, t, x, u):
+        n = self._n
+        return x[:, :n], x[:, n:]
+
+    def derivative(self, t, x, u):
+        n = self._n
+        q, qdot = x[:, :n], x[:, n:]
+        B = x.shape[0]
+        E, G = _n_link_geometry(q, self.p.lengths, self._mask_ik)
+        R, I = np.real(G), np.imag(G)
+        m = np.broadcast_to(self._m, (B, n))
+        H = np.einsum("bi,bik,bil->bkl", m, R, R) + np.einsum("bi,bik,bil->bkl", m, I, I)
+        sE = self._s * E                                           # (B, i)
+        cross = np.real(sE)[:, :, None] * R + np.imag(sE)[:, :, None] * I   # (B, i, l)
+        cross = np.einsum("ki,bil->bkl", self._mask, cross)
+        H = H + cross + cross.transpose(0, 2, 1) + self._J_cum
+        Y = _n_link_regressor(qdot, qdot, np.zeros_like(qdot), self.p.lengths,
+                              self.p.gravity, self._mask_ik, E, G)
+        bias = np.matmul(Y, self.p.theta[:, :, None])[:, :, 0]    # C qdot + g
+        rhs = u[0] + u[1] - bias
+        dx = np.empty((B, 2 * n))
+        dx[:, :n] = qdot
+        dx[:, n:] = np.linalg.solve(H, rhs[:, :, None])[:, :, 0]
+        return dx
+
+
+@register
+class NLinkRegressor(Block):
+    """Planar n-link-arm regressor Y(q, qdot, zeta, zetad), H zetad + C zeta + g = Y theta.
+
+    Property 3 for ``NLinkArm``, with theta = ``NLinkArm.parameter_vector`` ordered per link
+    [m_i, m_i lc_i cos(com_angle_i), m_i lc_i sin(com_angle_i), I_i + m_i lc_i^2] (p = 4n;
+    m_1 and, without gravity, other columns may be zero: the set is not minimal).  The link
+    lengths (kinematics) and the gravitational acceleration are known, so they are
+    parameters of this block; give them the plant's values.
+
+    Ports:
+        | port  | direction | shape   | feedthrough          |
+        | q     | in        | (n,)    | -                    |
+        | qdot  | in        | (n,)    | -                    |
+        | zeta  | in        | (n,)    | -                    |
+        | zetad | in        | (n,)    | -                    |
+        | Y     | out       | (n, 4n) | q, qdot, zeta, zetad |
+
+    Parameters:
+        lengths: the n link lengths (m).
+        gravity: gravitational acceleration in the plane (default 0).
+    """
+
+    params = {
+        "lengths": Param("array", [1.0, 1.0], "link lengths (m), one per link"),
+        "gravity": Param("float", 0.0, "gravitational acceleration (0: horizontal plane)"),
+    }
+    example = {"lengths": [1.0, 0.8, 0.5], "gravity": 9.81}
+
+    def setup(self, lengths, gravity):
+        lengths = _n_link_values(self.name, lengths, 1.0, None, 0.0, None)[0]
+        n = self._n = lengths.size
+        for name in ("q", "qdot", "zeta", "zetad"):
+            self.declare_input(name, (n,))
+        self.declare_output("Y", (n, 4 * n), feedthrough=("q", "qdot", "zeta", "zetad"))
+        self.set_param("lengths", lengths)
+        self.set_param("gravity", gravity)
+        self._mask_ik = np.tril(np.ones((n, n)))[None]             # [., i, k] = (k <= i)
+
+    def output(self, t, x, u):
+        q, qdot, zeta, zetad = u
+        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0], self.p.gravity.shape[0])
+        shape = (B, self._n)
+        E, G = _n_link_geometry(np.broadcast_to(q, shape), self.p.lengths, self._mask_ik)
+        return (_n_link_regressor(np.broadcast_to(qdot, shape), np.broadcast_to(zeta, shape),
+                                  np.broadcast_to(zetad, shape), self.p.lengths,
+                                  self.p.gravity, self._mask_ik, E, G),)
