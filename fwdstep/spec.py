@@ -151,8 +151,7 @@ def evaluate_value(value: Any, namespace: dict, what: str):
         try:
             number = float(value)
         except OverflowError:
-            raise ExpressionError(f"{what}: the integer {str(value)[:12]}... is too large to be a "
-                                  "number") from None
+            raise ExpressionError(f"{what}: the integer is too large to be a number") from None
         if not math.isfinite(number):
             raise ExpressionError(f"{what}: value {value} is not finite")
         return number

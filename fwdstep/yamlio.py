@@ -16,6 +16,8 @@ from .errors import YamlError
 
 MAX_FILE_BYTES = 1 << 20          # 1 MiB: a diagram is text written by a person
 MAX_EXPANDED_NODES = 200_000      # nodes after alias expansion
+MAX_DEPTH = 64                    # nesting of mappings and lists
+MAX_INTEGER_DIGITS = 400          # a float holds at most ~309 decimal digits anyway
 
 
 class LineDict(dict):
@@ -43,10 +45,38 @@ class _DiagramLoader(yaml.SafeLoader):
     #: id() of the node under the top-level ``blocks:`` key (its keys are block names)
     blocks_node_id: int | None = None
     _current_scalar: yaml.Node | None = None
+    _depth: int = 0
 
     def construct_scalar(self, node):
         self._current_scalar = node      # remembered for errors raised while converting it
         return super().construct_scalar(node)
+
+    def compose_node(self, parent, index):
+        # PyYAML composes recursively: bound the depth before Python's recursion limit (and
+        # before the scanner's quadratic cost on thousands of open brackets) is reached
+        self._depth += 1
+        try:
+            if self._depth > MAX_DEPTH:
+                mark = self.peek_event().start_mark
+                raise YamlError(f"the document is nested more than {MAX_DEPTH} levels deep",
+                                line=mark.line + 1)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def fetch_flow_collection_start(self, TokenClass):
+        # the scanner looks ahead over every open '[' or '{' (quadratic up to ~1000 of them):
+        # stop at the depth limit here, before the composer ever sees them
+        if self.flow_level >= MAX_DEPTH:
+            raise YamlError(f"the document is nested more than {MAX_DEPTH} levels deep",
+                            line=self.line + 1)
+        super().fetch_flow_collection_start(TokenClass)
+
+    def construct_yaml_int(self, node):
+        if len(node.value) > MAX_INTEGER_DIGITS:
+            raise YamlError(f"the integer on this line has {len(node.value)} digits; numbers "
+                            f"are limited to {MAX_INTEGER_DIGITS}", line=node.start_mark.line + 1)
+        return super().construct_yaml_int(node)
 
 
 def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode):
@@ -58,7 +88,9 @@ def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode):
         try:
             hash(key)
         except TypeError:
-            raise YamlError(f"a mapping key must be a plain value, not {type(key).__name__}",
+            kind = "a list" if isinstance(key, list) else "a mapping" if isinstance(key, dict) \
+                else type(key).__name__
+            raise YamlError(f"a mapping key must be a plain value, not {kind}",
                             line=key_node.start_mark.line + 1) from None
         if key in seen:
             what = "block name" if id(node) == loader.blocks_node_id else "key"
@@ -93,6 +125,7 @@ def _refuse_tag(loader: yaml.SafeLoader, tag_suffix: str, node: yaml.Node):
 
 _DiagramLoader.add_constructor("tag:yaml.org,2002:map", _construct_mapping)
 _DiagramLoader.add_constructor("tag:yaml.org,2002:seq", _construct_sequence)
+_DiagramLoader.add_constructor("tag:yaml.org,2002:int", _DiagramLoader.construct_yaml_int)
 _DiagramLoader.add_multi_constructor("", _refuse_tag)
 _DiagramLoader.add_multi_constructor("!", _refuse_tag)
 _DiagramLoader.add_multi_constructor("tag:yaml.org,2002:python/", _refuse_tag)
@@ -164,6 +197,10 @@ def parse_yaml_text(text: str, file: str | None = None):
     try:
         try:
             node = loader.get_single_node()
+        except YamlError as exc:
+            raise exc.located(file) from None
+        except RecursionError:
+            raise YamlError("the document is nested too deeply", file=file) from None
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
             problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
@@ -187,7 +224,7 @@ def parse_yaml_text(text: str, file: str | None = None):
         except RecursionError:
             raise YamlError("the document is nested too deeply", file=file) from None
         except (ValueError, OverflowError) as exc:
-            # e.g. an integer literal of more than 4300 digits (Python's int-parsing limit)
+            # a scalar PyYAML's resolver accepted but Python cannot convert
             reason = str(exc).split(";")[0]
             raise YamlError(f"not valid YAML: a value cannot be read: {reason}"[:300], file=file,
                             line=_value_error_line(loader)) from None
