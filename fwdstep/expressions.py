@@ -10,6 +10,7 @@ to a refusal at once instead of building a huge integer.
 from __future__ import annotations
 
 import ast
+import difflib
 import math
 from typing import Any, Mapping
 
@@ -181,7 +182,8 @@ class _Evaluator:
         self.what = what
 
     def fail(self, msg: str) -> ExpressionError:
-        return ExpressionError(f"{self.what}: expression '{self.src}' {msg}")
+        src = self.src if len(self.src) <= 100 else self.src[:97] + "..."
+        return ExpressionError(f"{self.what}: expression '{src}' {msg}")
 
     def screen(self, tree) -> None:
         """Refuse forbidden constructs anywhere in the tree before evaluating anything, so
@@ -222,7 +224,10 @@ class _Evaluator:
         if node.id in FUNCTIONS:
             raise self.fail(f"uses the function '{node.id}' without calling it")
         known = ", ".join(sorted(self.ns)) or "(none)"
-        raise self.fail(f"refers to undefined name '{node.id}'; defined names are: {known}")
+        close = difflib.get_close_matches(node.id, list(self.ns) + list(CONSTANTS), n=1)
+        hint = f"did you mean '{close[0]}'? " if close else ""
+        raise self.fail(f"refers to undefined name '{node.id}'; {hint}defined names are: "
+                        f"{known}")
 
     def visit_List(self, node):
         items, total = [], 0
@@ -250,7 +255,8 @@ class _Evaluator:
     def visit_BinOp(self, node):
         op = _BINOPS.get(type(node.op))
         if op is None:
-            raise self.fail(f"uses a forbidden operator ({type(node.op).__name__})")
+            hint = "; write powers as '**'" if isinstance(node.op, ast.BitXor) else ""
+            raise self.fail(f"uses a forbidden operator ({type(node.op).__name__}){hint}")
         a = np.asarray(self.visit(node.left), dtype=float)
         b = np.asarray(self.visit(node.right), dtype=float)
         try:

@@ -174,8 +174,8 @@ CASES = [
     ("unconnected_input", WiringError, 4,
      "block 'int' input port 'u' is not connected"),
     ("undefined_name", ExpressionError, 4,
-     "block 'g' parameter 'gain': expression '2*alpah' refers to undefined name 'alpah'; "
-     'defined names are: alpha'),
+     "block 'g' parameter 'gain': expression '2*alpah' refers to undefined name 'alpah'; did "
+     "you mean 'alpha'? defined names are: alpha"),
     ("unknown_block_parameter", ParameterError, 5,
      "block 'g' (Gain) has no parameter 'gian'; valid parameters are: gain, shape"),
     ("unknown_block_type", UnknownBlockTypeError, 3,
