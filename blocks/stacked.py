@@ -156,6 +156,10 @@ class TransferFunctionSum(LinearBlock):
         derivatives: number of derivative outputs y_d1..y_dm (default 0).
         input_derivatives: per input, how many of its derivatives are supplied as inputs
             u<j>_d1.. (default none); refused when an output needs one that is not supplied.
+        omit_direct: input numbers j (from 1) whose direct terms h_j,k u_j are left out of
+            every output (add them outside the block): breaks a loop through the block when
+            a state-only output (y) and a direct term of the same input are in one loop, as
+            e_2 -> psi_2 -> W -> v -> e_2'' in eq. (118) (default none).
         shape: shape of every input and output (list; [] or omitted for a scalar).
         initial: initial observer-form state, broadcast to (order, *shape) (default 0).
     """
@@ -166,6 +170,8 @@ class TransferFunctionSum(LinearBlock):
         "derivatives": Param("int", default=0, doc="number of derivative outputs y_d1.."),
         "input_derivatives": Param("array", default=None, doc="per input: number of supplied "
                                    "input derivatives (default 0 each)"),
+        "omit_direct": Param("array", default=None, doc="inputs j (from 1) whose direct terms "
+                             "h_j,k u_j are left out of every output y_dk"),
         "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default: scalar"),
         "initial": Param("array", default=None, doc="initial observer-form state, broadcast "
                          "to (order, *shape) (default 0)"),
@@ -173,7 +179,7 @@ class TransferFunctionSum(LinearBlock):
     example = {"den": [1.0, 3.0, 3.0, 1.0], "nums": [[2.0, 1.0, 1.0], [1.0]],
                "derivatives": 2, "input_derivatives": [1, 0], "shape": [2]}
 
-    def setup(self, den, nums, derivatives, input_derivatives, shape, initial):
+    def setup(self, den, nums, derivatives, input_derivatives, omit_direct, shape, initial):
         den = _denominator(self, den)
         order = den.size - 1
         if isinstance(nums, np.ndarray):
@@ -199,6 +205,14 @@ class TransferFunctionSum(LinearBlock):
                     f"non-negative whole numbers (one per input), got {arr.tolist()}",
                     block=self.name)
             have = [int(_count(self, "input_derivatives", int(a))) for a in arr]
+        omit = set()
+        if omit_direct is not None:
+            arr = np.atleast_1d(np.asarray(omit_direct, dtype=float))
+            if arr.ndim != 1 or np.any(arr < 1) or np.any(arr > m) or np.any(arr != np.floor(arr)):
+                raise ParameterError(
+                    f"block '{self.name}' parameter 'omit_direct' must list input numbers "
+                    f"1..{m}, got {arr.tolist()}", block=self.name)
+            omit = {int(a) - 1 for a in arr}
         shape = signal_shape(self, "shape", shape)
         size = int(np.prod(shape, dtype=np.int64))
         self.require_size("number of states (order x signal elements)", order * size,
@@ -227,7 +241,7 @@ class TransferFunctionSum(LinearBlock):
             for j in range(m):
                 for i in range(k + 1):
                     coefficient = markov(j, k - i)
-                    if coefficient == 0.0:
+                    if coefficient == 0.0 or (i == 0 and j in omit):
                         continue
                     if i > have[j]:
                         raise ParameterError(
@@ -240,6 +254,8 @@ class TransferFunctionSum(LinearBlock):
         self.set_linear(np.kron(A, eye), {f"u{j + 1}": np.kron(B[:, j:j + 1], eye)
                                           for j in range(m)}, Cs, Ds, x0=x0)
         self.relative_degrees = rel
+        #: direct_terms[k][j] = h_j,k, the coefficient of u_j in y_dk (for omit_direct users)
+        self.direct_terms = [[markov(j, k) for j in range(m)] for k in range(derivatives + 1)]
 
 
 @register
@@ -307,3 +323,43 @@ class LinearCombination(Block):
                                 np.broadcast_to(fixed, (batch, fixed.shape[1]))], axis=1)
         y = np.matmul(v.reshape(v.shape[0], self._size, self._K), w[:, :, None])
         return (y.reshape((y.shape[0],) + self._shape),)
+
+
+def annihilator_coefficients(omegas) -> np.ndarray:
+    """theta_1..theta_n* of eq. (113)-(a2): prod_i (s + omega_i^2) = s^n* + theta_n* s^(n*-1)
+    + ... + theta_1, so theta_1 = prod omega_i^2 and theta_n* = sum omega_i^2."""
+    squares = np.asarray(omegas, dtype=float) ** 2
+    return np.poly(-squares)[1:][::-1].astype(float)
+
+
+@register
+class FrequencyParameters(Block):
+    """The constant theta_1..theta_n* of eq. (113)-(a2) computed from frequencies omega_i.
+
+    Equation: prod_i (p^2 + omega_i^2) = p^(2n*) + theta_n* p^(2n*-2) + ... + theta_2 p^2
+    + theta_1, i.e. theta_1 = prod omega_i^2, ..., theta_n* = sum omega_i^2 (for n* = 3 the
+    three lines after eq. (113)); the true values that theta_hat_i of eq. (120) estimate.
+
+    Ports:
+        | port  | direction | shape | feedthrough |
+        | theta | out       | (n*,) | -           |
+
+    Parameters:
+        omegas: (n*,) frequencies omega_i in rad/s.
+    """
+
+    params = {"omegas": Param("array", doc="(n*,) frequencies omega_i [rad/s]")}
+    example = {"omegas": [1.0, 2.0, 3.0]}
+
+    def setup(self, omegas):
+        omegas = np.atleast_1d(np.asarray(omegas, dtype=float))
+        if omegas.ndim != 1 or omegas.size == 0:
+            raise ParameterError(f"block '{self.name}' parameter 'omegas' must be a non-empty "
+                                 f"list of frequencies, got shape {omegas.shape}",
+                                 block=self.name)
+        self.require_size("number of frequencies", omegas.size, MAX_BANK)
+        self.declare_output("theta", (omegas.size,), feedthrough=())
+        self.set_param("theta", annihilator_coefficients(omegas))
+
+    def output(self, t, x, u):
+        return (self.p.theta,)
