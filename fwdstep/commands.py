@@ -95,8 +95,9 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
         return EXIT_INTERRUPTED
     if not quiet:
         m = result.metrics()
-        line = f"{result.status}: t = {result.t[-1]:g} s in {result.wall_time:.2f} s wall"
-        if m:
+        reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
+        line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"
+        if m and m.get("final_abs_error") is not None:
             line += (f"; final |e| = {m['final_abs_error']:.3e}, max |e| over last "
                      f"{int(100 * d.spec.metrics.get('tail', 0.2))}% = "
                      f"{m['tail_max_abs_error']:.3e}, RMS = {m['rms_error']:.3e}")

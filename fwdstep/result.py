@@ -102,23 +102,38 @@ class Result:
         for k, v in self._signals.items():
             arrays[k] = v[:, 0] if self.batch == 1 else v
         paths = [safe_path(outdir, RESULT_FILE), safe_path(outdir, SUMMARY_FILE)]
-        atomic_write(paths[0], lambda fh: np.savez(fh, **arrays), binary=True)
-        atomic_write(paths[1], lambda fh: fh.write(json.dumps(self.summary(), indent=2)))
+        summary = json.dumps(self.summary(), indent=2)
+        # both files are complete on disk before either replaces an old one
+        with atomic_write(paths[0], lambda fh: np.savez(fh, **arrays), binary=True,
+                          commit=False) as commit_result:
+            atomic_write(paths[1], lambda fh: fh.write(summary))
+            commit_result()
         return paths
 
 
 def error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> dict:
     if len(t) == 0:
         return {"final_abs_error": None, "tail_max_abs_error": None, "rms_error": None}
-    norm = np.sqrt(np.sum(e.reshape(len(t), -1) ** 2, axis=1))
+    with np.errstate(all="ignore"):      # a diverged run has huge, inf or NaN errors
+        norm = _scaled_norm(e.reshape(len(t), -1), axis=1)
+        rms = _scaled_norm(norm, axis=0) / np.sqrt(len(norm))
     t_end = t[-1]
     mask = t >= t[0] + (1 - tail) * (t_end - t[0])
     return {
         "final_abs_error": float(norm[-1]),
         "tail_max_abs_error": float(np.max(norm[mask])),
-        "rms_error": float(np.sqrt(np.mean(norm ** 2))),
+        "rms_error": float(rms),
         "max_abs_error": float(np.max(norm)),
     }
+
+
+def _scaled_norm(a: np.ndarray, axis: int):
+    """Euclidean norm that does not overflow for entries near the float limit."""
+    scale = np.max(np.abs(a), axis=axis, keepdims=True)
+    safe = np.where((scale > 0) & np.isfinite(scale), scale, 1.0)
+    norm = np.sqrt(np.sum((a / safe) ** 2, axis=axis, keepdims=True)) * safe
+    norm = np.where(np.isfinite(scale), norm, scale)     # inf and NaN pass through
+    return np.squeeze(norm, axis=axis)
 
 
 def safe_path(outdir: str, name: str) -> str:
@@ -132,20 +147,56 @@ def safe_path(outdir: str, name: str) -> str:
     return path
 
 
-def atomic_write(path: str, write, binary: bool = False) -> None:
-    """Write to a temporary file in the same directory, then rename over ``path``."""
+def atomic_write(path: str, write, binary: bool = False, commit: bool = True):
+    """Write to a temporary file in the same directory, then rename it over ``path``.
+
+    ``path`` is always either the old file or the complete new one, never a truncated file,
+    and no temporary file is left behind.  With ``commit=False`` the rename is deferred:
+    the return value is a context manager yielding a function that performs it (the
+    temporary file is removed if the block is left without calling it)."""
     directory = os.path.dirname(path)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())          # as open() would create it, not 0600
         with os.fdopen(fd, "wb" if binary else "w") as fh:
             write(fh)
-        os.replace(tmp, path)
+        if commit:
+            os.replace(tmp, path)
+            return None
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        _unlink(tmp)
         raise
+    return _Deferred(tmp, path)
+
+
+class _Deferred:
+    def __init__(self, tmp: str, path: str):
+        self.tmp, self.path, self.done = tmp, path, False
+
+    def __enter__(self):
+        return self.commit
+
+    def commit(self) -> None:
+        os.replace(self.tmp, self.path)
+        self.done = True
+
+    def __exit__(self, *exc) -> bool:
+        if not self.done:
+            _unlink(self.tmp)
+        return False
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _jsonable(obj):
