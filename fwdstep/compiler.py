@@ -14,6 +14,7 @@ import numpy as np
 from .block import Block
 from .errors import ConfigError, DiagramError
 from .graph import Structure, build_structure, instantiate
+from .linear import fusable
 from .spec import DiagramSpec, load_spec
 
 MAX_TOTAL_STATES = 2_000_000
@@ -120,7 +121,17 @@ def compile_structure(structure: Structure, batch: int, params: list) -> Compile
             shapes.append(port.shape)
     constants = {}
     schedule, stateful = [], []
-    offset = 0
+    # flat state layout: called blocks first, then the blocks the run loop can fuse into one
+    # linear system (fwdstep.linear.plan_fusion), so that their states are one slice
+    offsets, offset = {}, 0
+    for fused in (False, True):
+        for blk in structure.blocks:
+            if blk.n_states and fusable(blk) == fused:
+                offsets[blk.name] = offset
+                offset += blk.n_states
+                if offset > MAX_TOTAL_STATES:
+                    raise ConfigError(f"the diagram has more than {MAX_TOTAL_STATES} states",
+                                      file=spec.file)
     for blk in structure.blocks:
         ins = []
         for port in blk.inputs.values():
@@ -136,11 +147,7 @@ def compile_structure(structure: Structure, batch: int, params: list) -> Compile
         outs = tuple(index[f"{blk.name}.{p}"] for p in blk.outputs)
         sl = None
         if blk.n_states:
-            sl = slice(offset, offset + blk.n_states)
-            offset += blk.n_states
-            if offset > MAX_TOTAL_STATES:
-                raise ConfigError(f"the diagram has more than {MAX_TOTAL_STATES} states",
-                                  file=spec.file)
+            sl = slice(offsets[blk.name], offsets[blk.name] + blk.n_states)
         step = Step(blk, sl, tuple(ins), outs)
         schedule.append(step)
         if sl is not None:

@@ -7,10 +7,18 @@ filters) is described by flat matrices over the *vectorised* (C-order flattened)
     vec(y_k) = C_k x + sum_j D_kj vec(u_j)
 
 The block's constructor only builds these matrices; the run-time code is shared here.  The
-per-output feedthrough is read off the non-zero ``D_kj`` blocks, so it is exact.  Because the
-engine knows this form, it can later fuse all linear blocks of a diagram into one system.
+per-output feedthrough is read off the non-zero ``D_kj`` blocks, so it is exact.
+
+Because the engine knows this form, it fuses the linear blocks of a diagram (``plan_fusion``):
+their states sit side by side in one block-diagonal system whose derivative is one matrix
+product per stage, and chains of linear outputs (y = C x + D u feeding another linear block)
+are substituted into each other at compile time, so every group of linear signals that
+becomes computable at the same point of the schedule costs one matrix product.  Any block
+may take part by offering ``linear_form()`` (see ``LinearForm``); ``LinearBlock`` offers it.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -126,3 +134,255 @@ def observer_form(den, nums):
     if n:
         C[0, 0] = 1.0
     return A, B, C, D
+
+
+# ---------------------------------------------------------------------------- fusion
+@dataclass
+class LinearForm:
+    """A block's exact linear description, every matrix with a leading batch axis (1 or B)
+    and in (out, in) orientation over the vectorised ports::
+
+        xdot = A x + sum_j B[j] vec(u_j),    vec(y_k) = C[k] x + sum_j D[(k, j)] vec(u_j)
+
+    ``A`` (Bp, N, N); ``B`` maps input index j -> (Bp, N, size_j); ``C`` lists one
+    (Bp, size_k, N) per output; ``D`` maps (k, j) -> (Bp, size_k, size_j).  Missing = zero.
+    A block's ``linear_form()`` may return None (e.g. too large to hold densely); the block is
+    then simply called.  It must describe ``output`` and ``derivative`` exactly."""
+    A: np.ndarray
+    B: dict
+    C: list
+    D: dict
+
+
+def _linear_form(self) -> LinearForm:
+    """This block's ``LinearForm``, read from the (possibly stacked) parameters in ``p``."""
+    p = self.p
+
+    def t(a):
+        return np.swapaxes(a, -1, -2)
+
+    return LinearForm(
+        A=t(p.A_T),
+        B={j: t(getattr(p, f"B_T_{j}")) for j in self._b_used},
+        C=[t(getattr(p, f"C_T_{k}")) for k in range(len(self._out_names))],
+        D={(k, j): t(getattr(p, f"D_T_{k}_{j}"))
+           for k, used in enumerate(self._d_used) for j in used})
+
+
+LinearBlock.linear_form = _linear_form
+
+
+def _defining_index(cls: type, name: str) -> int | None:
+    for i, klass in enumerate(cls.__mro__):
+        if name in vars(klass):
+            return i
+    return None
+
+
+def linear_form_of(block: Block) -> LinearForm | None:
+    """The block's ``LinearForm`` if it offers one that describes its run-time methods.
+
+    A subclass that overrides ``output`` or ``derivative`` below the class defining
+    ``linear_form`` is not trusted to be linear and is called like any other block."""
+    cls = type(block)
+    where = _defining_index(cls, "linear_form")
+    if where is None:
+        return None
+    for method in ("output", "derivative"):
+        defined = _defining_index(cls, method)
+        if defined is not None and defined < where:
+            return None
+    return block.linear_form()
+
+
+def fusable(block: Block) -> bool:
+    """Cheap class-level test used to lay fusable states out side by side."""
+    cls = type(block)
+    where = _defining_index(cls, "linear_form")
+    return where is not None and all(
+        (_defining_index(cls, m) is None or _defining_index(cls, m) >= where)
+        for m in ("output", "derivative"))
+
+
+#: Fusion is skipped when one fused matrix would hold more numbers than this (dense
+#: matrices of large filtered signals would cost more than the calls they replace).
+MAX_FUSED_ELEMENTS = 4_000_000
+
+
+@dataclass
+class LinearGroup:
+    """One fused matrix product ``[outputs | dx] = [inputs] @ M``.
+
+    ``inputs``: list of (term, size) in column order; term is ``"x"`` (the fused states) or a
+    signal index.  ``outputs``: list of (signal index, size) in column order.  With
+    ``derivative`` true, the last ``n_states`` product columns are the fused states'
+    derivative.  ``M`` is (Bp, n_in, n_out) with Bp = 1 or the batch size."""
+    inputs: list
+    outputs: list
+    M: np.ndarray
+    derivative: bool = False
+
+
+@dataclass
+class FusionPlan:
+    """The evaluation order with linear blocks fused.
+
+    ``ops``: ("call", step) or ("group", LinearGroup) in evaluation order; every signal is
+    written by exactly one op.  ``state``: slice of the flat state holding the fused states;
+    their derivative is computed by the one group with ``derivative`` set (with the last
+    output group whose inputs suffice, or a group of its own at the end).  ``fused``: names
+    of the blocks that are no longer called."""
+    ops: list
+    state: slice
+    fused: set = field(default_factory=set)
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def _accumulate(terms: dict, key, mat: np.ndarray) -> None:
+    terms[key] = terms[key] + mat if key in terms else mat
+
+
+def plan_fusion(schedule: list, signal_shapes: list, constants: dict) -> FusionPlan | None:
+    """Fuse every block offering a ``LinearForm``; None when there is nothing to fuse or the
+    fused matrices would be too large.  ``schedule`` lists the compiler's Steps."""
+    forms = {i: f for i, f in ((i, linear_form_of(st.block)) for i, st in enumerate(schedule))
+             if f is not None}
+    if not forms:
+        return None
+    # the fused states must form one slice (the compiler lays them out so)
+    slices = sorted((schedule[i].state for i in forms if schedule[i].state is not None),
+                    key=lambda sl: sl.start)
+    start = stop = slices[0].start if slices else 0
+    for sl in slices:
+        if sl.start != stop:
+            return None
+        stop = sl.stop
+    width = stop - start
+    try:
+        return _Planner(schedule, forms, signal_shapes, constants, start, width).run()
+    except _TooLarge:
+        return None
+
+
+class _Planner:
+    """Walks the schedule once; see ``plan_fusion``.  Expressions are dicts term -> matrix
+    (Bp, rows, cols) in (out, in) orientation; term "x" is the fused state vector."""
+
+    def __init__(self, schedule, forms, shapes, constants, start, width):
+        self.schedule, self.forms, self.constants = schedule, forms, constants
+        self.start, self.width = start, width
+        self.size = [int(np.prod(sh, dtype=np.int64)) for sh in shapes]
+        self.pending: dict = {}        # signal index -> (schedule position, output number)
+        self.available: set = set(constants)
+        self.ops: list = []
+        self.derivative = self._derivative_terms() if width else None
+
+    def _place_cols(self, i, mat):
+        """(Bp, rows, n_i) -> (Bp, rows, width), at block i's columns of the fused state."""
+        sl = self.schedule[i].state
+        full = np.zeros(mat.shape[:-1] + (self.width,))
+        full[..., sl.start - self.start:sl.stop - self.start] = mat
+        return full
+
+    def _place_rows(self, i, mat):
+        sl = self.schedule[i].state
+        full = np.zeros(mat.shape[:-2] + (self.width, mat.shape[-1]))
+        full[..., sl.start - self.start:sl.stop - self.start, :] = mat
+        return full
+
+    def _derivative_terms(self) -> dict:
+        terms: dict = {}
+        for i, form in self.forms.items():
+            step = self.schedule[i]
+            if step.state is None:
+                continue
+            _accumulate(terms, "x", self._place_rows(i, self._place_cols(i, form.A)))
+            for j, Bj in form.B.items():
+                u = step.inputs[j]
+                if u not in self.constants:         # unconnected optional input: zero
+                    _accumulate(terms, u, self._place_rows(i, Bj))
+        return terms
+
+    def _substitute(self, terms: dict, memo: dict) -> dict:
+        """Replace pending linear signals in ``terms`` by their expressions."""
+        out: dict = {}
+        for term, mat in terms.items():
+            if term in self.pending:
+                for sub, smat in self._expression(term, memo).items():
+                    _accumulate(out, sub, np.matmul(mat, smat))
+            else:
+                _accumulate(out, term, mat)
+        return out
+
+    def _expression(self, idx: int, memo: dict) -> dict:
+        if idx not in memo:
+            i, k = self.pending[idx]
+            form, step = self.forms[i], self.schedule[i]
+            terms: dict = {}
+            if step.state is not None and np.any(form.C[k]):
+                terms["x"] = self._place_cols(i, form.C[k])
+            for (kk, j), Dkj in form.D.items():
+                if kk == k and step.inputs[j] not in self.constants:
+                    _accumulate(terms, step.inputs[j], Dkj)
+            memo[idx] = self._substitute(terms, memo)
+        return memo[idx]
+
+    def _flush(self) -> None:
+        if not self.pending:
+            return
+        memo: dict = {}
+        rows = [(idx, self.size[idx]) for idx in self.pending]
+        row_terms = [self._expression(idx, memo) for idx in self.pending]
+        with_derivative = self.derivative is not None and all(
+            t == "x" or t in self.available or t in self.pending for t in self.derivative)
+        if with_derivative:
+            rows.append((None, self.width))
+            row_terms.append(self._substitute(self.derivative, memo))
+            self.derivative = None
+        self.ops.append(("group", self._group(rows, row_terms, with_derivative)))
+        self.available.update(self.pending)
+        self.pending.clear()
+
+    def _group(self, rows: list, row_terms: list, derivative: bool) -> LinearGroup:
+        columns: list = []
+        for terms in row_terms:
+            columns.extend(t for t in terms if t not in columns)
+        columns.sort(key=lambda c: c != "x")
+        col_size = {c: (self.width if c == "x" else self.size[c]) for c in columns}
+        n_in = sum(col_size.values())
+        n_out = sum(n for _, n in rows)
+        batch = max([m.shape[0] for terms in row_terms for m in terms.values()] + [1])
+        if batch * n_in * n_out > MAX_FUSED_ELEMENTS:
+            raise _TooLarge
+        M = np.zeros((batch, n_in, n_out))
+        col0, c = {}, 0
+        for term in columns:
+            col0[term], c = c, c + col_size[term]
+        r = 0
+        for (_, n), terms in zip(rows, row_terms):
+            for term, mat in terms.items():
+                M[:, col0[term]:col0[term] + col_size[term], r:r + n] = np.swapaxes(mat, -1, -2)
+            r += n
+        outputs = [(idx, n) for idx, n in rows if idx is not None]
+        return LinearGroup(inputs=[(t, col_size[t]) for t in columns], outputs=outputs, M=M,
+                           derivative=derivative)
+
+    def run(self) -> FusionPlan:
+        for i, step in enumerate(self.schedule):
+            if i in self.forms:
+                for k, idx in enumerate(step.outputs):
+                    self.pending[idx] = (i, k)
+                continue
+            if any(u in self.pending for u in step.inputs):
+                self._flush()
+            self.ops.append(("call", step))
+            self.available.update(step.outputs)
+        self._flush()
+        if self.derivative is not None:         # its inputs come after every output group
+            self.ops.append(("group", self._group([(None, self.width)], [self.derivative],
+                                                  True)))
+        return FusionPlan(ops=self.ops, state=slice(self.start, self.start + self.width),
+                          fused={self.schedule[i].block.name for i in self.forms})

@@ -14,6 +14,12 @@ Procedure Step (one step of size h from (t_n, x_n), an s-stage explicit RK table
 
 The final time is recorded with one extra output pass.  Nothing per-run is stored in the
 diagram or its blocks: all buffers live in this function's frame.
+
+``simulate`` runs this procedure through ``fwdstep.program``, which generates it once per
+run as straight-line code over preallocated buffers and fuses the linear blocks (each
+linear output still computed once per stage, as part of one matrix product); the
+evaluator ``_make_evaluator`` below is the plain form, used for the initial state and to
+locate a failing block.  docs/performance.md tells what was measured and changed.
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ import numpy as np
 
 from .compiler import CompiledDiagram
 from .errors import BlockRuntimeError, DivergenceError, SimulationError
+from .program import build_program
 from .result import Result
 from .solvers import TABLEAUX, step_plan
 
@@ -31,8 +38,9 @@ class SimulationInterrupted(SimulationError):
     """The run was interrupted (Ctrl-C); ``result`` holds everything up to ``time``."""
 
 
-def _make_evaluator(d: CompiledDiagram, counters: list | None = None):
-    """Build ``f(t, x, dx) -> None`` (fills dx) and the shared signal list."""
+def _make_evaluator(d: CompiledDiagram):
+    """Build ``f(t, x, dx) -> None`` (fills dx), ``outputs(t, x)`` and the shared signal
+    list: the procedure above, block by block, without the program's preparation."""
     sig: list = [None] * len(d.signal_names)
     for idx, arr in d.constant_signals.items():
         sig[idx] = arr
@@ -60,27 +68,48 @@ def _make_evaluator(d: CompiledDiagram, counters: list | None = None):
     return f, outputs, sig
 
 
-def _runtime_error(d: CompiledDiagram, sig, t, x, exc) -> BlockRuntimeError:
-    """Find which block raised (re-running each in order) and describe it."""
-    for step in d.schedule + d.stateful:
-        u = tuple(sig[i] for i in step.inputs)
-        if any(v is None for v in u):
-            continue
-        try:
-            xs = x[:, step.state] if step.state is not None else x[:, 0:0]
-            step.block.output(t, xs, u)
-            if step.state is not None:
-                step.block.derivative(t, xs, u)
-        except Exception as inner:  # noqa: BLE001 - reporting the user's block failure
-            names = list(step.block.inputs)
-            shown = "; ".join(f"{n}={np.array2string(np.asarray(v)[0], precision=4, threshold=12)}"
-                              for n, v in zip(names, u))
-            return BlockRuntimeError(
-                f"block '{step.block.name}' ({step.block.type_name}) raised "
-                f"{type(inner).__name__}: {inner} at t = {t:.6g}; inputs: {shown or '(none)'}",
-                time=t, block=step.block.name)
+def _locate_failure(d: CompiledDiagram, t: float, x: np.ndarray, exc) -> BlockRuntimeError:
+    """Which block raised during the step from (t, x), at which stage time and with which
+    inputs: the step is replayed with the reference evaluator, one block at a time."""
+    tab = TABLEAUX[d.spec.simulation.solver]
+    stages, _ = step_plan(tab, d.spec.simulation.step)
+    sig: list = [None] * len(d.signal_names)
+    for idx, arr in d.constant_signals.items():
+        sig[idx] = arr
+    k = [np.zeros((d.batch, d.n_states)) for _ in range(tab.stages)]
+    empty = slice(0, 0)
+    with np.errstate(all="ignore"):
+        for s, (ch, coeffs) in enumerate([(0.0, [])] + list(stages)):
+            ts = t + ch if s else t
+            xi = x.copy()
+            for j, a in coeffs:
+                xi += a * k[j]
+            for what, steps in (("output", d.schedule), ("derivative", d.stateful)):
+                for step in steps:
+                    u = tuple(sig[i] for i in step.inputs)
+                    xs = xi[:, step.state if step.state is not None else empty]
+                    try:
+                        if what == "output":
+                            y = step.block.output(ts, xs, u)
+                            for idx, val in zip(step.outputs, y):
+                                sig[idx] = val
+                        else:
+                            k[s][:, step.state] = step.block.derivative(ts, xs, u)
+                    except Exception as inner:  # noqa: BLE001 - the user's block failed
+                        return _block_error(step, inner, ts, u)
     return BlockRuntimeError(f"evaluation failed at t = {t:.6g}: {type(exc).__name__}: {exc}",
                              time=t)
+
+
+def _block_error(step, inner, t, u) -> BlockRuntimeError:
+    names = list(step.block.inputs)
+    shown = "; ".join(
+        f"{n}={np.array2string(np.asarray(v)[0], precision=4, threshold=12)}"
+        if v is not None else f"{n}=(not yet computed)" for n, v in zip(names, u))
+    return BlockRuntimeError(
+        f"block '{step.block.name}' ({step.block.type_name}) raised "
+        f"{type(inner).__name__}: {inner} at t = {t:.6g}; inputs: {shown or '(none)'}",
+        time=t, block=step.block.name)
 
 
 def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
@@ -101,7 +130,8 @@ def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
     return x
 
 
-def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) -> Result:
+def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
+             fuse: bool = True) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -110,9 +140,9 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) ->
     'interrupted').  For a batch (B > 1) a diverging variant is frozen and marked, the
     others go on.
     ``progress(fraction)`` is called about once per second of wall time.
+    ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
     """
     cfg = d.spec.simulation
-    tab = TABLEAUX[cfg.solver]
     h = cfg.step
     n_steps = cfg.n_steps
     every = cfg.log_every
@@ -120,16 +150,11 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) ->
     bound = cfg.bound
     wall0 = _time.perf_counter()
 
-    f, outputs, sig = _make_evaluator(d)
-    x = initial_state(d) if x0 is None else np.array(x0, dtype=float)
-    stages, final = step_plan(tab, h)
-    k = [np.empty((B, N)) for _ in range(tab.stages)]
-
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
-    log_idx = [d.signal_index[name] for name in d.logged]
-    logs = [np.full((n_rows, B) + d.signal_shapes[i], np.nan) for i in log_idx]
-    pairs = list(zip(logs, log_idx))
-    t_log = np.empty(n_rows)
+    prog = build_program(d, n_rows, fuse=fuse)
+    x = prog.xn
+    x[...] = d.x0
+    first, first_record, rest = prog.first, prog.first_record, prog.rest
     row = 0
     alive = np.ones(B, dtype=bool)
     died_at = np.full(B, np.nan)
@@ -137,37 +162,40 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) ->
     n = 0
     t = 0.0
     next_report = wall0 + 1.0
-
-    def record(row, t):
-        t_log[row] = t
-        for L, i in pairs:
-            L[row] = sig[i]
+    absx = np.empty((B, N))
+    single = B == 1 and N > 0
 
     with np.errstate(all="ignore"):
         try:
+            x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
             for n in range(n_steps):
                 t = n * h
-                f(t, x, k[0])
                 if n % every == 0:
-                    record(row, t)
+                    first_record(t, row)
                     row += 1
-                for s, (ch, coeffs) in enumerate(stages, start=1):
-                    xi = x.copy()
-                    for j, a in coeffs:
-                        xi += a * k[j]
-                    f(t + ch, xi, k[s])
-                for j, b in final:
-                    x += b * k[j]
-                m = np.abs(x).max(axis=1) if N else np.zeros(B)
-                if not (m <= bound).all():
-                    bad = ~(m <= bound) & alive
-                    died_at[bad] = t + h
-                    alive &= ~bad
-                    if not alive.any():
+                else:
+                    first(t)
+                rest(t)
+                if single:
+                    if np.abs(x, out=absx).max() <= bound:
+                        pass
+                    else:
                         status = "diverged"
                         message = _divergence_message(d, x, bound, t + h)
+                        died_at[0] = t + h
+                        alive[0] = False
                         break
-                    x[~alive] = 0.0      # frozen variants: keep the others finite and going
+                elif N:
+                    m = np.abs(x, out=absx).max(axis=1)
+                    if not (m <= bound).all():
+                        bad = ~(m <= bound) & alive
+                        died_at[bad] = t + h
+                        alive &= ~bad
+                        if not alive.any():
+                            status = "diverged"
+                            message = _divergence_message(d, x, bound, t + h)
+                            break
+                        x[~alive] = 0.0      # frozen variants: keep the others finite, going
                 if progress is not None and n % 2048 == 0:
                     now = _time.perf_counter()
                     if now >= next_report:
@@ -175,24 +203,24 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) ->
                         next_report = now + 1.0
             else:
                 t = n_steps * h
-                outputs(t, x)
-                record(row, t)
+                prog.final(t, row)
                 row += 1
         except KeyboardInterrupt:
             status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
-            error = _runtime_error(d, sig, t, x, exc)
+            error = _locate_failure(d, t, x, exc)
             error.__cause__ = exc
             status, message = "error", str(error)
     if B > 1 and (~alive).any() and status == "ok":
         status = "partially diverged"
         message = f"{int((~alive).sum())} of {B} variants diverged"
-    t_out = t_log[:row]
-    signals = {name: L[:row] for name, L in zip(d.logged, logs)}
-    for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
-        for L in signals.values():
-            L[t_out >= died_at[b], b] = np.nan
+    t_out = prog.t_log[:row]
+    signals = {name: L[:row] for name, L in zip(d.logged, prog.logs)}
+    if B > 1:
+        for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
+            for L in signals.values():
+                L[t_out >= died_at[b], b] = np.nan
     result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
                     wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
                     diverged_at=died_at)
