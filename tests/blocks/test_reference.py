@@ -386,8 +386,6 @@ def test_critically_damped_coefficients_are_binomial(ell, kappa):
 @pytest.mark.parametrize("ell", [1, 3, 5])
 def test_kappa_divides_the_roots(ell):
     roots = np.array([-1.0, -2.0, -0.5 + 1.0j, -0.5 - 1.0j, -3.0, -0.7][:ell + 1])
-    if ell == 1:
-        roots = np.array([-1.0, -2.0])
     alphas = np.real(np.poly(roots))[1:][::-1]
     kappa = 2.5
     blk = make("eq14", ell, alphas=alphas, kappa=kappa)
