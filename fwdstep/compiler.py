@@ -7,7 +7,10 @@ The simulator then only walks a prepared list.
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -78,24 +81,64 @@ def structure_signature(blocks: list) -> tuple:
 def stack_blocks(variants: list) -> list:
     """Stack the numeric parameters of structurally identical block lists along the batch axis.
 
-    Returns the first variant's blocks with ``p`` arrays of leading length B (or 1 where all
-    variants agree) and ``x0`` of shape (B, n)."""
+    Returns copies of the first variant's blocks with ``p`` arrays of leading length B (or 1
+    where all variants agree) and ``x0`` of shape (B, n); the variants' own blocks (which
+    may be shared between variants and batches) are left as they were."""
     first = variants[0]
     B = len(variants)
+    signature = structure_signature(first)
     for blocks in variants[1:]:
-        if structure_signature(blocks) != structure_signature(first):
+        if blocks is not first and structure_signature(blocks) != signature:
             raise ConfigError("variants of a batch differ in structure (a parameter changes "
                               "a shape or a state size); run them in separate batches")
-    for k, blk in enumerate(first):
-        for name, arr in list(vars(blk.p).items()):
-            vals = [vars(v[k].p)[name] for v in variants]
-            if all(np.array_equal(vals[0], v) for v in vals[1:]):
+    stacked = []
+    for k, original in enumerate(first):
+        blk = copy.copy(original)
+        blk.p = SimpleNamespace(**vars(original.p))
+        column = [v[k] for v in variants]
+        for name in list(vars(blk.p)):
+            vals = [vars(c.p)[name] for c in column]
+            if all(c is original for c in column) or all(
+                    np.array_equal(vals[0], v) for v in vals[1:]):
                 continue
             setattr(blk.p, name, np.concatenate(vals, axis=0))
-        x0s = [v[k].x0 for v in variants]
+        x0s = [c.x0 for c in column]
         blk.x0 = np.concatenate(x0s, axis=0) if B > 1 else x0s[0]
         blk.finalize(B)
-    return first
+        stacked.append(blk)
+    return stacked
+
+
+def _same_value(a, b) -> bool:
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and a.dtype == b.dtype and bool(np.array_equal(a, b))
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same_value(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
+    return bool(a == b)
+
+
+def instantiate_variants(specs: list) -> list:
+    """The blocks of every spec.  A block whose type and parameters equal those of the same
+    block in an earlier spec is the same instance (a sweep over one gain builds one arm, one
+    regressor, ... and only the gains anew)."""
+    made: dict = {}                    # (position, name, class) -> [(params, block), ...]
+    out = []
+    for spec in specs:
+        row = []
+        for k, entry in enumerate(spec.blocks):
+            key = (k, entry.name, entry.cls)
+            blk = next((b for params, b in made.get(key, ())
+                        if _same_value(params, entry.params)), None)
+            if blk is None:
+                blk = instantiate(dataclasses.replace(spec, blocks=[entry]))[0]
+                made.setdefault(key, []).append((entry.params, blk))
+            row.append(blk)
+        out.append(row)
+    return out
 
 
 def compile_spec(spec: DiagramSpec) -> CompiledDiagram:
@@ -104,7 +147,11 @@ def compile_spec(spec: DiagramSpec) -> CompiledDiagram:
 
 def compile_batch(specs: list) -> CompiledDiagram:
     """One compiled diagram integrating ``len(specs)`` structurally identical variants."""
-    variants = [instantiate(s) for s in specs]
+    return compile_variants(specs, instantiate_variants(specs))
+
+
+def compile_variants(specs: list, variants: list) -> CompiledDiagram:
+    """``compile_batch`` from already instantiated blocks (one list per spec)."""
     blocks = stack_blocks(variants)
     structure = build_structure(specs[0], blocks)
     return compile_structure(structure, len(specs), [s.parameters for s in specs])
