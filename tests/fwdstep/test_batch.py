@@ -47,7 +47,7 @@ metrics: {error: e.y}
 
 VARIANTS = [
     {"K": "20*eye(2)"},
-    {"K": "-120*eye(2)", "gamma": 5},          # positive feedback: diverges at t = 0.4
+    {"K": "-120*eye(2)"},                      # positive feedback: diverges at t = 0.4
     {"K": "50*eye(2)", "alpha": 2, "q0": [0.3, 0.2]},
     {"gamma": 0.5, "amp": [0.5, -0.1]},
 ]
