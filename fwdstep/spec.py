@@ -136,8 +136,10 @@ def evaluate_value(value: Any, namespace: dict, what: str):
             total += int(np.size(items[-1])) if items[-1] is not None else 1
             if total > MAX_ARRAY_SIZE:
                 raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
-        if any(isinstance(v, (bool, np.bool_)) for v in items):
-            raise ExpressionError(f"{what}: a list may contain only numbers")
+        for v in items:
+            if v is None or isinstance(v, (bool, np.bool_)):
+                shown = "null (an empty entry)" if v is None else str(v).lower()
+                raise ExpressionError(f"{what}: a list may contain only numbers, not {shown}")
         try:
             return np.array(items, dtype=float)
         except (ValueError, TypeError):

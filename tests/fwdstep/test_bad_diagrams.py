@@ -99,6 +99,9 @@ CASES = [
      'input int.u is driven twice: by a.y (line 6) and by b.y'),
     ("input_used_as_source", WiringError, 5,
      "block 'int' has no output port 'u' ('u' is an input); output ports are: y"),
+    ("list_with_null", ExpressionError, 2,
+     "block 'src' parameter 'value': a list may contain only numbers, not null (an empty "
+     "entry)"),
     ("log_missing_signal", ConfigError, 6,
      "signal 'int.x' (in log/plots/metrics) does not exist; block 'int' has outputs: y"),
     ("malformed_connection", WiringError, 5,
