@@ -73,7 +73,7 @@ def test_e2_realisation_matches_polynomial_division_realisation(tmp_path, nstar,
     conns = ["psi1.y -> r2a.u1", "v.y -> r2a.u2, r2b.u", "r2a.y -> e2alt.u1",
              "r2b.y -> e2alt.u2"]
     r = run_modified(tmp_path, "theorem9.yaml",
-                     overrides={"nstar": nstar, "omegas": omegas},
+                     overrides={"nstar": nstar, "omegas": omegas, "gammas": 1e3},
                      blocks=blocks, connections=conns, log=["e2.y", "e2alt.y", "v.y"])
     e2, alt = r["e2.y"], r["e2alt.y"]
     assert np.max(np.abs(e2)) > 1e-4            # a non-trivial signal was compared
