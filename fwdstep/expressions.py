@@ -162,8 +162,12 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
     try:
         tree = ast.parse(src, mode="eval")
     except (SyntaxError, ValueError) as exc:
+        hint = ""
+        if src.count("(") > src.count(")") or src.count("[") > src.count("]"):
+            hint = ("; in a YAML {...} or [...] a comma ends the value, so quote expressions "
+                    "that contain commas")
         raise ExpressionError(f"{what}: cannot parse expression '{shown}': "
-                              f"{getattr(exc, 'msg', exc)}") from None
+                              f"{getattr(exc, 'msg', exc)}{hint}") from None
     except (RecursionError, MemoryError):
         raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
     evaluator = _Evaluator(shown, namespace, what)
