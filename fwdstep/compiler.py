@@ -109,33 +109,35 @@ def stack_blocks(variants: list) -> list:
     return stacked
 
 
-def _same_value(a, b) -> bool:
-    if type(a) is not type(b):
-        return False
-    if isinstance(a, np.ndarray):
-        return a.shape == b.shape and a.dtype == b.dtype and bool(np.array_equal(a, b))
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(_same_value(a[k], b[k]) for k in a)
-    if isinstance(a, (list, tuple)):
-        return len(a) == len(b) and all(_same_value(x, y) for x, y in zip(a, b))
-    return bool(a == b)
+def _value_key(value):
+    """A hashable key equal for equal parameter values (type, shape and every number)."""
+    if isinstance(value, np.ndarray):
+        return ("ndarray", value.shape, value.dtype.str, value.tobytes())
+    if isinstance(value, dict):
+        return ("dict", tuple((k, _value_key(v)) for k, v in value.items()))
+    if isinstance(value, (list, tuple)):
+        return (type(value).__name__, tuple(_value_key(v) for v in value))
+    try:
+        hash(value)
+    except TypeError:
+        return ("id", id(value))               # unhashable and unknown: never shared
+    return (type(value).__name__, value)
 
 
-def instantiate_variants(specs: list) -> list:
+def instantiate_variants(specs: list, made: dict | None = None) -> list:
     """The blocks of every spec.  A block whose type and parameters equal those of the same
     block in an earlier spec is the same instance (a sweep over one gain builds one arm, one
-    regressor, ... and only the gains anew)."""
-    made: dict = {}                    # (position, name, class) -> [(params, block), ...]
+    regressor, ... and only the gains anew).  ``made`` is the cache of built blocks, to share
+    it between calls."""
+    made = {} if made is None else made
     out = []
     for spec in specs:
         row = []
         for k, entry in enumerate(spec.blocks):
-            key = (k, entry.name, entry.cls)
-            blk = next((b for params, b in made.get(key, ())
-                        if _same_value(params, entry.params)), None)
+            key = (k, entry.name, entry.cls, _value_key(entry.params))
+            blk = made.get(key)
             if blk is None:
-                blk = instantiate(dataclasses.replace(spec, blocks=[entry]))[0]
-                made.setdefault(key, []).append((entry.params, blk))
+                blk = made[key] = instantiate(dataclasses.replace(spec, blocks=[entry]))[0]
             row.append(blk)
         out.append(row)
     return out
