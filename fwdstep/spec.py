@@ -178,7 +178,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 def resolve_parameters(raw: LineDict, overrides: dict, file: str,
-                       preset: dict | None = None) -> dict:
+                       preset: dict | None = None, line: int | None = None) -> dict:
     """Evaluate the ``parameters:`` section (any order; references resolved by dependency).
 
     ``overrides`` replace raw values (``--set``); ``preset`` supplies already-evaluated values
@@ -197,7 +197,7 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
             hint = f"did you mean '{close[0]}'? " if close else ""
             raise ConfigError(f"--set {name}=...: the diagram has no parameter '{name}'; "
                               f"{hint}parameters are: {known}", file=file,
-                              line=getattr(raw, "line", None) if values else None)
+                              line=line or getattr(raw, "line", None))
         values[name] = value
     namespace: dict = dict(preset or {})
     pending = {k: v for k, v in values.items() if k not in namespace}
@@ -534,7 +534,8 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
     """Read, check and flatten a diagram file (and its subsystems)."""
     path = os.path.normpath(path)
     doc = _read_document(path)
-    ns = resolve_parameters(doc.get("parameters"), overrides or {}, path)
+    ns = resolve_parameters(doc.get("parameters"), overrides or {}, path,
+                            line=_line(doc, "parameters"))
     level = _Level(doc, path, ns, "", (os.path.realpath(path),))
     level.expand()
     sim = _simulation(doc, ns, path)

@@ -281,7 +281,7 @@ def good(tmp_path) -> str:
     return os.path.normpath(str(path))
 
 
-SET_MESSAGE = ("{path}:2: --set alpah=...: the diagram has no parameter 'alpah'; did you mean "
+SET_MESSAGE = ("{path}:1: --set alpah=...: the diagram has no parameter 'alpah'; did you mean "
                "'alpha'? parameters are: gain, alpha")
 
 
