@@ -73,8 +73,8 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
     B, N = d.batch, d.n_states
     S = tab.stages
 
-    xn = np.zeros((B, N))
-    X = np.zeros((B, N))          # the stage state x_i
+    xn = np.zeros((B, N))         # x_n, updated in place at the end of each step
+    X = np.zeros((B, N))          # the stage state x_i, i >= 2 (stage 1 reads x_n itself)
     T = np.zeros((B, N))          # scratch for a * k_j
     K = np.zeros((S, B, N))
     src = _Source()
@@ -82,7 +82,6 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
     ns.update(xn=xn, X=X, T=T, multiply=np.multiply, add=np.add, dot=np.dot, matmul=np.matmul)
     for s in range(S):
         ns[f"K{s}"] = K[s]
-    empty = X[:, 0:0]
 
     plan = plan_fusion(d.schedule, d.signal_shapes, d.constant_signals) if fuse else None
     if plan is None:
@@ -92,102 +91,96 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
         ops = plan.ops
         called_stateful = [s for s in d.stateful if s.block.name not in plan.fused]
 
-    # ---------------------------------------------------------------- names of signals
+    def state_view(buffer, sl):
+        """Name of the constant view of a block's state in ``buffer`` (made once)."""
+        key = (id(buffer), None if sl is None else (sl.start, sl.stop))
+        if key not in views:
+            views[key] = src.const("xv", buffer[:, sl] if sl is not None else buffer[:, 0:0])
+        return views[key]
+
+    views: dict = {}
+    # ---------------------------------------------------------------- signal names
     shapes = [tuple(sh) for sh in d.signal_shapes]
     name: dict = {}
     for idx, arr in d.constant_signals.items():
         name[idx] = src.const("zero", arr)
     producer_call: dict = {}
-    call_names: dict = {}          # id(step) -> (output method, state view) names
     for kind, op in ops:
         if kind == "call":
             for idx in op.outputs:
                 producer_call[idx] = op
                 name[idx] = f"s{idx}"
-            call_names[id(op)] = (src.const("out_", op.block.output),
-                                  src.const("xv_", X[:, op.state] if op.state is not None
-                                            else empty))
-    group_code: list = []
-    derivative_group = None        # (LinearGroup, its buffer's dx view or None)
+    groups = {}                    # id(LinearGroup) -> _GroupBuffers
+    derivative_group = None
     for kind, op in ops:
-        if kind != "group":
-            continue
-        if op.derivative and not op.outputs:      # product straight into each k_i
-            derivative_group = (op, None)
-            continue
-        lines, dx_view = _group(src, op, B, X, name, shapes, plan)
-        group_code.append(lines)
-        if op.derivative:
-            derivative_group = (op, dx_view)
+        if kind == "group":
+            groups[id(op)] = _GroupBuffers(src, op, B, shapes, name)
+            if op.derivative:
+                derivative_group = op
     # signals read before their producer ran in this stage (inputs that are not
-    # feedthrough): keep them in a cell that holds the previous stage's value
+    # feedthrough): kept in a cell that holds the previous stage's value
     stale: set = set()
     done: set = set(d.constant_signals)
     for kind, op in ops:
         if kind == "call":
-            for u in op.inputs:
-                if u not in done and u in producer_call:
-                    stale.add(u)
+            stale.update(u for u in op.inputs if u not in done and u in producer_call)
             done.update(op.outputs)
         else:
             done.update(idx for idx, _ in op.outputs)
-    cell = [None] * len(d.signal_names)
-    ns["S"] = cell
+    ns["S"] = [None] * len(d.signal_names)
 
     def read(u):
         return f"S[{u}]" if u in stale else name[u]
 
-    # ---------------------------------------------------------------- output pass
-    out_lines: list = []
-    groups = iter(group_code)
-    for kind, op in ops:
-        if kind == "group":
-            if op.outputs:
-                out_lines.extend(next(groups))
-            continue
-        fn, xv = call_names[id(op)]
-        args = ", ".join(read(u) for u in op.inputs)
-        args = f"({args},)" if len(op.inputs) == 1 else f"({args})"
-        call = f"{fn}(ts, {xv}, {args})"
-        if len(op.outputs) == 1:
-            out_lines.append(f"{name[op.outputs[0]]} = {call}[0]")
-        else:
-            out_lines.append(f"r = {call}")
-            for k, idx in enumerate(op.outputs):
-                out_lines.append(f"{name[idx]} = r[{k}]")
-        for idx in op.outputs:
-            if idx in stale:
-                out_lines.append(f"S[{idx}] = {name[idx]}")
+    def args(inputs) -> str:
+        text = ", ".join(read(u) for u in inputs)
+        return f"({text},)" if len(inputs) == 1 else f"({text})"
 
-    # ---------------------------------------------------------------- derivative pass
-    def derivative_lines(s: int) -> list:
+    # ---------------------------------------------------------------- one stage
+    def output_pass(buffer) -> list:
+        lines = []
+        for kind, op in ops:
+            if kind == "group":
+                g = groups[id(op)]
+                if op.outputs:
+                    lines.extend(g.code(src, buffer, plan, read, g.Y))
+                continue
+            call = (f"{src.const('out', op.block.output)}(ts, {state_view(buffer, op.state)}, "
+                    f"{args(op.inputs)})")
+            if len(op.outputs) == 1:
+                lines.append(f"{name[op.outputs[0]]} = {call}[0]")
+            else:
+                lines.append(f"r = {call}")
+                lines.extend(f"{name[idx]} = r[{k}]" for k, idx in enumerate(op.outputs))
+            lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)
+        return lines
+
+    def derivative_pass(buffer, s: int) -> list:
         lines = []
         for step in called_stateful:
-            kv = src.const(f"kv{s}_", K[s][:, step.state])
-            fn = src.const("der_", step.block.derivative)
-            args = ", ".join(read(u) for u in step.inputs)
-            args = f"({args},)" if len(step.inputs) == 1 else f"({args})"
-            xv = src.const("xv_", X[:, step.state])
-            lines.append(f"{kv}[...] = {fn}(ts, {xv}, {args})")
+            kv = src.const(f"k{s}_", K[s][:, step.state])
+            fn = src.const("der", step.block.derivative)
+            lines.append(f"{kv}[...] = {fn}(ts, {state_view(buffer, step.state)}, "
+                         f"{args(step.inputs)})")
         if derivative_group is not None:
-            group, dx_view = derivative_group
+            g = groups[id(derivative_group)]
             kv = K[s][:, plan.state]
-            if dx_view is None:
-                lines.extend(_product(src, group, B, X, name, shapes, plan, kv))
-            else:
-                lines.append(f"{src.const('kvlin', kv)}[...] = {src.const('dx', dx_view)}")
+            if derivative_group.outputs:          # dx came with the group's outputs
+                lines.append(f"{src.const('klin', kv)}[...] = {src.const('dx', g.dx)}")
+            else:                                 # a product straight into k_i
+                lines.extend(g.code(src, buffer, plan, read, kv))
         return lines
 
     # ---------------------------------------------------------------- logging
-    logs, record_lines = [], []
+    logs = []
     t_log = np.empty(n_rows)
     ns["t_log"] = t_log
+    record = ["t_log[row] = t"]
     for sig_name in d.logged:
         idx = d.signal_index[sig_name]
-        arr = np.full((n_rows, B) + tuple(d.signal_shapes[idx]), np.nan)
+        arr = np.full((n_rows, B) + shapes[idx], np.nan)
         logs.append(arr)
-        record_lines.append(f"{src.const('log_', arr)}[row] = {read(idx)}")
-    record_lines.insert(0, "t_log[row] = t")
+        record.append(f"{src.const('log', arr)}[row] = {read(idx)}")
 
     # ---------------------------------------------------------------- functions
     def function(header: str, body: list) -> None:
@@ -196,10 +189,11 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
             src.emit(1, line)
         src.emit(0, "")
 
-    stage1 = ["X[...] = xn", "ts = t"] + out_lines
-    function("def first(t):", stage1 + derivative_lines(0))
-    function("def first_record(t, row):", stage1 + record_lines + derivative_lines(0))
+    stage1 = ["ts = t"] + output_pass(xn)
+    function("def first(t):", stage1 + derivative_pass(xn, 0))
+    function("def first_record(t, row):", stage1 + record + derivative_pass(xn, 0))
     rest = []
+    stage = output_pass(X)
     for s, (ch, coeffs) in enumerate(stages, start=1):
         # x_i = x_n + sum_j a_ij k_j, summed in the reference stepper's order
         if coeffs:
@@ -212,13 +206,13 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
             rest.append(f"multiply(K{j}, {src.const('a', a)}, out=T)")
             rest.append("add(X, T, out=X)")
         rest.append(f"ts = t + {src.const('c', ch)}")
-        rest.extend(out_lines)
-        rest.extend(derivative_lines(s))
+        rest.extend(stage)
+        rest.extend(derivative_pass(X, s))
     for j, b in final_coeffs:
         rest.append(f"multiply(K{j}, {src.const('b', b)}, out=T)")
         rest.append("add(xn, T, out=xn)")
     function("def rest(t):", rest)
-    function("def final(t, row):", ["X[...] = xn", "ts = t"] + out_lines + record_lines)
+    function("def final(t, row):", stage1 + record)
 
     source = "\n".join(src.lines)
     exec(compile(source, f"<fwdstep program for {d.file}>", "exec"), ns)  # noqa: S102
@@ -227,47 +221,47 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
                    plan=plan, source=source)
 
 
-def _group(src: _Source, group: LinearGroup, B: int, X, name: dict, shapes: list,
-           plan) -> list:
-    """Code of one fused output group; its outputs become fixed views of its buffer."""
-    n_out = group.M.shape[2]
-    Y = np.zeros((B, n_out))
-    lines = _product(src, group, B, X, name, shapes, plan, Y)
-    c = 0
-    for idx, n in group.outputs:
-        name[idx] = src.const(f"y{idx}_", _view(Y[:, c:c + n], (B,) + shapes[idx]))
-        c += n
-    return lines, (Y[:, c:] if group.derivative else None)
+class _GroupBuffers:
+    """The preallocated buffers of one fused product ``[inputs] @ M``: the input buffer V
+    (one view per input term), M, the product buffer Y whose column views are the group's
+    output signals (bound in ``name``), and the view of its derivative columns."""
 
+    def __init__(self, src: _Source, group: LinearGroup, B: int, shapes: list, name: dict):
+        self.group = group
+        n_in = sum(n for _, n in group.inputs)
+        self.V = np.zeros((B, n_in))
+        self.inputs = []
+        c = 0
+        for term, n in group.inputs:
+            view = self.V[:, c:c + n]
+            self.inputs.append((term, view if term == "x" else _view(view, (B,) + shapes[term])))
+            c += n
+        self.Y = np.zeros((B, group.M.shape[2]))
+        c = 0
+        for idx, n in group.outputs:
+            name[idx] = src.const(f"y{idx}_", _view(self.Y[:, c:c + n], (B,) + shapes[idx]))
+            c += n
+        self.dx = self.Y[:, c:] if group.derivative else None
 
-def _product(src: _Source, group: LinearGroup, B: int, X, name: dict, shapes: list, plan,
-             out) -> list:
-    """Lines filling the group's input buffer and writing ``[inputs] @ M`` into ``out``."""
-    n_in = sum(n for _, n in group.inputs)
-    lines = []
-    if n_in == 0:                      # every output is identically zero
-        return lines
-    V = np.zeros((B, n_in))
-    c = 0
-    for term, n in group.inputs:
-        if term == "x":
-            xv = src.const("xlin", X[:, plan.state])
-            lines.append(f"{src.const('v', V[:, c:c + n])}[...] = {xv}")
+    def code(self, src: _Source, buffer, plan, read, out) -> list:
+        """Lines filling V (states from ``buffer``) and writing the product into ``out``."""
+        if not self.V.shape[1]:                     # every output is identically zero
+            return []
+        lines = []
+        for term, view in self.inputs:
+            value = src.const("xlin", buffer[:, plan.state]) if term == "x" else read(term)
+            lines.append(f"{src.const('v', view)}[...] = {value}")
+        M = self.group.M
+        if M.shape[0] == 1 and out.flags.c_contiguous:
+            lines.append(f"dot({src.const('V', self.V)}, {src.const('M', M[0])}, "
+                         f"out={src.const('Y', out)})")
+        elif M.shape[0] == 1:
+            lines.append(f"matmul({src.const('V', self.V)}, {src.const('M', M[0])}, "
+                         f"out={src.const('Y', out)})")
         else:
-            view = _view(V[:, c:c + n], (B,) + shapes[term])
-            lines.append(f"{src.const('v', view)}[...] = {name[term]}")
-        c += n
-    M = group.M
-    if M.shape[0] == 1 and out.flags.c_contiguous:
-        lines.append(f"dot({src.const('V', V)}, {src.const('M', M[0])}, "
-                     f"out={src.const('Y', out)})")
-    elif M.shape[0] == 1:
-        lines.append(f"matmul({src.const('V', V)}, {src.const('M', M[0])}, "
-                     f"out={src.const('Y', out)})")
-    else:
-        lines.append(f"matmul({src.const('V', V[:, None, :])}, {src.const('M', M)}, "
-                     f"out={src.const('Y', out[:, None, :])})")
-    return lines
+            lines.append(f"matmul({src.const('V', self.V[:, None, :])}, {src.const('M', M)}, "
+                         f"out={src.const('Y', out[:, None, :])})")
+        return lines
 
 
 def _view(arr: np.ndarray, shape: tuple) -> np.ndarray:
