@@ -210,18 +210,20 @@ def test_block_exception_at_t0_has_nothing_recorded(fragile, tmp_path, capsys):
     assert arrays["t"].shape == (0,) and summary["t_reached"] is None
 
 
-@pytest.mark.xfail(reason="fwdstep/simulate.py calls initial_state() outside its try block, so "
-                          "a block raising while reference dynamics are initialised escapes "
-                          "unwrapped (reported to the lead)", strict=False)
 def test_block_exception_during_initialisation_is_wrapped(fragile, tmp_path):
+    # reference dynamics take z(0) from their inputs: the block raises before step 0
     text = FRAGILE.format(where="output").replace(
         "Sine, amplitude: [1, 2], frequency: [1, 1]", "Constant, value: [1, 2]").replace(
         "  int: {type: Integrator, shape: [2]}",
         "  ref: {type: ReferenceDynamics, variant: eq2, ell: 1, n: 2, alpha: 1}").replace(
         "  - frag.y -> int.u", "  - frag.y -> ref.q\n  - src.y -> ref.qdot, ref.q_d")
     d = fwdstep.load_diagram(write(tmp_path, text))
-    with pytest.raises(BlockRuntimeError, match="block 'frag'"):
+    with pytest.raises(BlockRuntimeError) as info:
         fwdstep.simulate(d)
+    assert str(info.value) == ("block 'frag' (FragileTestBlock) raised ZeroDivisionError: the "
+                               "fragile block broke at t = 0; inputs: u=[1. 2.]")
+    assert isinstance(info.value.__cause__, ZeroDivisionError)
+    assert info.value.result.status == "error" and len(info.value.result.t) == 0
 
 
 # ------------------------------------------------------------------ Ctrl-C
