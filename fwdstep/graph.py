@@ -54,6 +54,7 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
     entry_of = {e.name: e for e in spec.blocks}
     drivers: dict = {}
     where: dict = {}
+    where_file: dict = {}
     for conn in spec.connections:
         (sb, sp), (db, dp) = conn.src, conn.dst
         for blk_name, port, kind in ((sb, sp, "output"), (db, dp, "input")):
@@ -82,6 +83,7 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
                              file=conn.file, line=conn.line, block=db, port=dp)
         drivers[(db, dp)] = (sb, sp)
         where[(db, dp)] = conn.line
+        where_file[(db, dp)] = conn.file
     for blk in blocks:
         for port in blk.inputs.values():
             if (blk.name, port.name) not in drivers and not port.optional:
@@ -120,7 +122,17 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
     index = {b.name: i for i, b in enumerate(blocks)}
     bg.add_nodes_from(index)
     for (db, dp), (sb, sp) in drivers.items():
-        if sb != db and any(dp in by_name[db].feedthrough(o) for o in by_name[db].outputs):
+        direct = [o for o in by_name[db].outputs if dp in by_name[db].feedthrough(o)]
+        if direct and sb == db:
+            # not a port-level loop (sp has no feedthrough from dp), but the block would need
+            # its own output before computing it: each block is evaluated once per stage
+            raise AlgebraicLoopError(
+                f"block '{db}' feeds its output '{sp}' back into its input '{dp}', on which "
+                f"its output '{direct[0]}' depends directly; fwdstep evaluates each block once "
+                "per stage, so a block cannot drive its own direct-feedthrough input",
+                file=where_file.get((db, dp), spec.file), line=where.get((db, dp)), block=db,
+                port=dp)
+        if direct:
             bg.add_edge(sb, db)
     try:
         order = list(nx.lexicographical_topological_sort(bg, key=lambda n: index[n]))

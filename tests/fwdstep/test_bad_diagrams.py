@@ -34,6 +34,14 @@ CASES = [
     ("billion_laughs", YamlError, 6,
      'the document expands to more than 200000 nodes through aliases (&anchor/*alias); '
      'refused'),
+    ("block_feeds_itself", AlgebraicLoopError, 8,
+     "block 'ref' feeds its output 'z' back into its input 'q', on which its output 'zdot' "
+     "depends directly; fwdstep evaluates each block once per stage, so a block cannot drive "
+     "its own direct-feedthrough input"),
+    ("block_level_loop", AlgebraicLoopError, 4,
+     "blocks ref -> g -> ref form a loop that is only broken inside a block whose outputs have "
+     "different feedthrough; fwdstep evaluates each block once per stage, so split that block "
+     "in two"),
     ("block_without_type", ConfigError, 2,
      "block 'src' has no 'type:' (the block type, e.g. 'type: Gain'; 'fwdstep blocks' lists "
      'them)'),

@@ -235,7 +235,9 @@ def locations(node, path=()):
 
 
 def swap_ports(doc, draw) -> None:
-    conns = [c for c in doc.get("connections") or [] if isinstance(c, str) and "->" in c]
+    if not isinstance(doc.get("connections"), list):
+        return
+    conns = [c for c in doc["connections"] if isinstance(c, str) and "->" in c]
     if not conns:
         return
     c = draw(st.sampled_from(conns))
