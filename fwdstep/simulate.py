@@ -28,7 +28,7 @@ import time as _time
 import numpy as np
 
 from .compiler import CompiledDiagram
-from .errors import BlockRuntimeError, DivergenceError, SimulationError
+from .errors import BlockRuntimeError, ConfigError, DivergenceError, SimulationError
 from .program import build_program
 from .result import Result
 from .solvers import TABLEAUX, step_plan
@@ -131,7 +131,7 @@ def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
 
 
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
-             fuse: bool = True) -> Result:
+             fuse: bool = True, backend: str | None = None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -141,8 +141,14 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     others go on.
     ``progress(fraction)`` is called about once per second of wall time.
     ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
+    ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
+    ``fwdstep.backend_numba``; single runs only).
     """
     cfg = d.spec.simulation
+    if (backend or cfg.backend) == "compiled":
+        return _simulate_compiled(d, progress, x0)
+    if (backend or cfg.backend) != "numpy":
+        raise ConfigError(f"unknown backend '{backend}'; backends are: numpy, compiled")
     h = cfg.step
     n_steps = cfg.n_steps
     every = cfg.log_every
@@ -212,11 +218,73 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             error = _locate_failure(d, t, x, exc)
             error.__cause__ = exc
             status, message = "error", str(error)
+    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
+                   n, t, wall0)
+
+
+def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
+    """``simulate`` with the numba backend: the same procedure, run in compiled chunks."""
+    try:
+        from . import backend_numba
+    except ImportError:
+        raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
+                          "backend 'numpy')", file=d.file) from None
+    cfg = d.spec.simulation
+    h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
+    wall0 = _time.perf_counter()
+    n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
+    prog = backend_numba.build_program(d, n_rows)
+    x = prog.xn
+    x[:] = d.x0[0]
+    alive = np.ones(1, dtype=bool)
+    died_at = np.full(1, np.nan)
+    status, message, error = "ok", "", None
+    n, t, row = 0, 0.0, 0
+    next_report = wall0 + 1.0
+    with np.errstate(all="ignore"):
+        try:
+            x[:] = np.reshape(initial_state(d) if x0 is None else np.asarray(x0, dtype=float),
+                              -1)
+            while n < n_steps:
+                code, n_next, row = prog.run(n, min(n + backend_numba.CHUNK, n_steps), row)
+                if code:
+                    n = n_next - 1
+                    t = n * h
+                    status = "diverged"
+                    message = _divergence_message(d, x[None], bound, t + h)
+                    died_at[0], alive[0] = t + h, False
+                    break
+                n = n_next
+                t = n * h
+                if progress is not None and _time.perf_counter() >= next_report:
+                    progress(n / n_steps)
+                    next_report = _time.perf_counter() + 1.0
+            else:
+                t = n_steps * h
+                prog.final(t, row)
+                row += 1
+                n = n_steps - 1
+        except KeyboardInterrupt:
+            status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
+            error = SimulationInterrupted(message, time=t)
+        except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
+            error = _locate_failure(d, t, x[None].copy(), exc)
+            error.__cause__ = exc
+            status, message = "error", str(error)
+    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
+                   x[None], n, t, wall0)
+
+
+def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t,
+            wall0) -> Result:
+    """The Result of a run (partial after an error), or the error carrying it."""
+    B, N = d.batch, d.n_states
+    h, bound = d.spec.simulation.step, d.spec.simulation.bound
     if B > 1 and (~alive).any() and status == "ok":
         status = "partially diverged"
         message = f"{int((~alive).sum())} of {B} variants diverged"
-    t_out = prog.t_log[:row]
-    signals = {name: L[:row] for name, L in zip(d.logged, prog.logs)}
+    t_out = t_log[:row]
+    signals = {name: L[:row] for name, L in zip(d.logged, logs)}
     if B > 1:
         for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
             for L in signals.values():

@@ -1,0 +1,141 @@
+"""The optional compiled backend (numba, fwdstep/backend_numba.py) gives the NumPy path's numbers.
+
+Skipped when numba is not installed.  The generated code is compiled into pytest's cache
+directory (``.pytest_cache``), so only the first run pays numba's compile (tens of seconds
+on a slow machine); later runs load it from disk.  The diagram uses most kernels: sources,
+the arm and its regressor, sums, a matrix gain, a product, the adaptation law, and fused
+linear blocks (reference dynamics, transfer functions, a column-wise state-space filter).
+"""
+import os
+
+import numpy as np
+import pytest
+
+import fwdstep
+from fwdstep.errors import ConfigError, DivergenceError
+
+numba = pytest.importorskip("numba")
+
+LOOP = """
+parameters: {ell: 2, alpha: 4, gamma: [2, 1, 1, 0.5]}
+blocks:
+  qd:    {type: Sine, amplitude: [0.3, 0.2], frequency: [[1.0, 2.0], [1.5, 0.5]],
+          phase: 0.2, offset: [0.1, 0], derivatives: 2}
+  arm:   {type: TwoLinkArm, q0: [0.1, -0.1], gravity: 9.81}
+  ref:   {type: ReferenceDynamics, variant: eq16, ell: ell, n: 2, alpha: alpha}
+  e:     {type: Sum, signs: "+-", shape: [2]}
+  s:     {type: Sum, signs: "+-", shape: [2]}
+  Y:     {type: Regressor, gravity: 9.81}
+  W:     {type: StateSpace, A: [[-5, 0], [0, -5]], B: [[5, 0], [0, 5]], C: [[1, 0], [0, 1]],
+          columns: 7}
+  Ks:    {type: Gain, gain: [[30, 5], [5, 20]]}
+  lag:   {type: TransferFunction, num: [1, 10], den: [1, 10], shape: [2]}
+  Yth:   {type: Product, a_shape: [2, 7], b_shape: [7]}
+  tau:   {type: Sum, signs: "+-", shape: [2]}
+  adapt: {type: AdaptationLaw, regressor_shape: [2, 7], gamma: 1, theta0: 0.5}
+  poly:  {type: Polynomial, coefficients: [0.5, -1, 0.25], derivatives: 1}
+  ie:    {type: Integrator}
+connections:
+  - arm.q -> ref.q, Y.q, e.u1
+  - arm.qdot -> ref.qdot, Y.qdot, s.u1
+  - qd.y -> ref.q_d, e.u2
+  - qd.y_d1 -> ref.qdot_d
+  - qd.y_d2 -> ref.qddot_d
+  - ref.z -> s.u2, Y.zeta
+  - ref.zdot -> Y.zetad
+  - Y.Y -> Yth.a, W.u
+  - W.y -> adapt.W
+  - adapt.theta_hat -> Yth.b
+  - s.y -> Ks.u, adapt.e
+  - Ks.y -> lag.u
+  - Yth.y -> tau.u1
+  - lag.y -> tau.u2
+  - tau.y -> arm.tau
+  - poly.y_d1 -> ie.u
+simulation: {t_final: 0.5, step: 0.001, solver: rk4, log_every: 3}
+"""
+
+
+@pytest.fixture(autouse=True)
+def cache(request, monkeypatch):
+    folder = request.config.cache.mkdir("fwdstep-numba")
+    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(folder))
+
+
+@pytest.fixture
+def loop(tmp_path):
+    path = tmp_path / "loop.yaml"
+    path.write_text(LOOP)
+    return str(path)
+
+
+@pytest.mark.slow          # the first run compiles (~30 s); later runs load from the cache
+def test_compiled_equals_numpy_path(loop):
+    d = fwdstep.load_diagram(loop)
+    ref = fwdstep.simulate(d)
+    got = fwdstep.simulate(d, backend="compiled")
+    np.testing.assert_array_equal(got.t, ref.t)
+    assert set(got.names) == set(ref.names) and len(ref.names) > 15
+    for name in ref.names:
+        scale = max(1.0, float(np.max(np.abs(ref[name]))))
+        np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale,
+                                   err_msg=name)
+
+
+@pytest.mark.slow
+def test_compiled_divergence_keeps_partial_results(loop, tmp_path):
+    text = LOOP.replace("gain: [[30, 5], [5, 20]]", "gain: [[-20, 0], [0, -20]]")
+    text = text.replace("log_every: 3}", "log_every: 3, bound: 50}")
+    path = tmp_path / "unstable.yaml"
+    path.write_text(text)
+    d = fwdstep.load_diagram(str(path))
+    with pytest.raises(DivergenceError) as ref_info:
+        fwdstep.simulate(d)
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(d, backend="compiled")
+    # the same step, block and state; the value itself has grown past the bound by then,
+    # where round-off differences are amplified
+    head = str(ref_info.value).split(" = ")[:2]
+    assert str(info.value).split(" = ")[:2] == head and info.value.block == "arm"
+    ref, got = ref_info.value.result, info.value.result
+    assert got.status == "diverged" and len(got.t) == len(ref.t) > 20
+    half = len(ref.t) // 2
+    np.testing.assert_allclose(got["e.y"][:half], ref["e.y"][:half], rtol=0, atol=1e-12)
+
+
+def test_a_block_without_kernel_is_refused(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text("blocks:\n  c: {type: Constant, value: 1}\n  f: {type: FragileKernelless}\n"
+                    "connections:\n  - c.y -> f.u\n")
+    from fwdstep.block import Block, Param
+    from fwdstep.registry import REGISTRY, register
+
+    @register
+    class FragileKernelless(Block):
+        """Test block without a compiled kernel."""
+        params: dict = {}
+
+        def setup(self):
+            self.declare_input("u", ())
+            self.declare_output("y", ())
+
+        def output(self, t, x, u):
+            return (u[0],)
+
+    try:
+        d = fwdstep.load_diagram(str(path))
+        with pytest.raises(ConfigError, match="no kernel for block f .FragileKernelless."):
+            fwdstep.simulate(d, backend="compiled")
+        assert fwdstep.simulate(d).status == "ok"
+    finally:
+        REGISTRY.pop("FragileKernelless", None)
+
+
+@pytest.mark.slow
+def test_generated_module_is_cached_by_structure(loop):
+    """Parameters are arguments: another gain reuses the same generated module."""
+    from fwdstep import backend_numba
+    a = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 4}), 10)
+    b = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 7}), 10)
+    assert a.module is b.module
+    assert os.path.dirname(a.module.__file__) == os.environ["FWDSTEP_CACHE_DIR"]
