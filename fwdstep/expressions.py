@@ -173,7 +173,10 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
     evaluator = _Evaluator(shown, namespace, what)
     try:
         evaluator.screen(tree.body)
-        value = evaluator.visit(tree.body)
+        body = tree.body
+        if isinstance(body, ast.Name) and body.id in namespace:
+            return namespace[body.id]     # a bare name passes any value on (a boolean flag)
+        value = evaluator.visit(body)
     except RecursionError:
         raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
     return value
@@ -222,7 +225,11 @@ class _Evaluator:
 
     def visit_Name(self, node):
         if node.id in self.ns:
-            return self.ns[node.id]
+            value = self.ns[node.id]
+            if value is None or isinstance(value, (bool, np.bool_, str)):
+                kind = "empty (null)" if value is None else f"{value!r}, not a number"
+                raise self.fail(f"uses '{node.id}', which is {kind}")
+            return value
         if node.id in CONSTANTS:
             return CONSTANTS[node.id]
         if node.id in FUNCTIONS:

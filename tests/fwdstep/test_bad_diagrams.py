@@ -61,6 +61,8 @@ CASES = [
     ("duplicate_key", YamlError, 6,
      "duplicate key 't_final' (first defined at line 4); YAML would silently keep only the "
      'last one'),
+    ("empty_parameter", ExpressionError, 5,
+     "block 'g' parameter 'gain': expression '-K' uses 'K', which is empty (null)"),
     ("empty", YamlError, 1,
      "the file is empty; a diagram needs at least a 'blocks:' section"),
     ("expression_overflow", ExpressionError, 5,

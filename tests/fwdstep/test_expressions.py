@@ -78,6 +78,20 @@ def test_forbidden_and_undefined(src, message):
     assert str(info.value) == f"p: expression '{src}' {message}"
 
 
+@pytest.mark.parametrize("value, message", [
+    (None, "uses 'K', which is empty (null)"),
+    (True, "uses 'K', which is True, not a number"),
+    ("2", "uses 'K', which is '2', not a number"),
+])
+def test_parameters_that_are_not_numbers(value, message):
+    # found by fuzzing: '-K' with K null raised TypeError from numpy
+    for src in ("-K", "K + 1", "[K]", "sin(K)"):
+        with pytest.raises(ExpressionError) as info:
+            evaluate(src, {"K": value}, "p")
+        assert str(info.value) == f"p: expression '{src}' {message}"
+    assert evaluate("K", {"K": value}) is value       # a bare name passes it on unchanged
+
+
 @pytest.mark.parametrize("name", ["eval", "exec", "open", "getattr", "compile", "input",
                                   "globals", "vars", "print", "breakpoint", "type"])
 def test_builtins_are_not_callable(name):
