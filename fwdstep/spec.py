@@ -146,7 +146,8 @@ def evaluate_value(value: Any, namespace: dict, what: str):
             raise ExpressionError(f"{what}: the list is not a rectangular array of numbers"
                                   ) from None
     if isinstance(value, dict):
-        raise ExpressionError(f"{what}: a mapping is not a value")
+        raise ExpressionError(f"{what} must be a number, a list or an expression, not a "
+                              "mapping ({...} or indented 'key: value' lines)")
     if isinstance(value, bool) or value is None:
         return value
     if isinstance(value, (int, float)):

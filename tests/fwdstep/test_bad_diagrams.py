@@ -134,7 +134,8 @@ CASES = [
     ("parameter_cycle", ExpressionError, 2,
      'parameters a, b refer to each other in a cycle'),
     ("parameter_mapping_value", ExpressionError, 2,
-     "block 'src' parameter 'value': a mapping is not a value"),
+     "block 'src' parameter 'value' must be a number, a list or an expression, not a mapping "
+     "({...} or indented 'key: value' lines)"),
     ("parameter_not_whole", ParameterError, 2,
      "block 'ref' parameter 'ell' must be a whole number, got 1.5"),
     ("parameter_wrong_type", ParameterError, 3,
