@@ -10,6 +10,8 @@
 (c) a 256-variant sweep of slotine_li.yaml (Lambda random in [2, 10]) vs one run (target
     <= 8) and vs 256 sequential runs (estimated as 256 x one run; --full runs them);
 (d) run time of theorem1.yaml against ell = 1..10 (q_d constant), with its hand loop;
+(a) and (b) also time the optional compiled backend (numba) when it is installed, in the
+process and in fresh processes that load the compiled code from the disk cache;
 plus the other targets of issue 7: memory of a 10 s run logging every signal every step,
 and the wall time of ``fwdstep validate`` in a fresh process (no matplotlib, no numba).
 
@@ -122,6 +124,47 @@ def bench_single(label, path, overrides, hand_factory, repeats, t_final, report)
                      "ratio_wall": res["fwdstep"]["wall_median"] / res["hand"]["wall_median"],
                      "ratio_cpu": res["fwdstep"]["cpu_median"] / res["hand"]["cpu_median"],
                      "agreement": diff}
+    if compiled_available():
+        bench_compiled(label, path, overrides, d, res["hand"], repeats, t_final, report)
+
+
+def compiled_available() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("numba") is not None
+
+
+def bench_compiled(label, path, overrides, d, hand, repeats, t_final, report):
+    """The numba backend: in this process once compiled, and in fresh processes that find
+    the compiled code in the disk cache (import fwdstep and numba, load, run)."""
+    fwdstep.simulate(d, backend="compiled")           # compile (or load) once
+    res = interleaved({"compiled": lambda: fwdstep.simulate(d, backend="compiled")}, repeats)
+    diff = float(np.max(np.abs(res["compiled"]["out"]["e.y"] - fwdstep.simulate(d)["e.y"])))
+    line("compiled backend, in process", res["compiled"], hand)
+    code = ("import sys, time; w = time.perf_counter(); import fwdstep; "
+            "from fwdstep.spec import load_spec; import json; "
+            "spec = load_spec(sys.argv[1], json.loads(sys.argv[2])); "
+            "spec.simulation.t_final = float(sys.argv[3]) or spec.simulation.t_final; "
+            "d = fwdstep.compiler.compile_spec(spec); "
+            "r = fwdstep.simulate(d, backend='compiled'); "
+            "print(time.perf_counter() - w, r.wall_time)")
+    walls, inner = [], []
+    for _ in range(repeats):
+        w = time.perf_counter()
+        out = subprocess.run([sys.executable, "-c", code, path, json.dumps(overrides),
+                              str(t_final or 0)], capture_output=True, text=True, cwd=ROOT)
+        walls.append(time.perf_counter() - w)
+        inner.append(float(out.stdout.split()[1]))
+    fresh = statistics.median(walls)
+    print(f"  {'compiled backend, fresh process (cached)':42s} wall {fresh:8.3f} s "
+          f"(simulate() alone {statistics.median(inner):.3f} s: numba import + cache load + "
+          f"run)   ratio wall {fresh / hand['wall_median']:6.3f}; "
+          f"max |e_compiled - e_numpy| = {diff:.1e}")
+    report[label]["compiled"] = {
+        "in_process": _strip(res["compiled"]),
+        "ratio_in_process_wall": res["compiled"]["wall_median"] / hand["wall_median"],
+        "ratio_in_process_cpu": res["compiled"]["cpu_median"] / hand["cpu_median"],
+        "fresh_process_wall": fresh, "ratio_fresh_process_wall": fresh / hand["wall_median"],
+        "agreement_with_numpy": diff}
 
 
 def bench_sweep(repeats, samples, t_final, full, report):

@@ -5,7 +5,11 @@ import numpy as np
 
 from fwdstep.block import Block, Param
 from fwdstep.errors import ParameterError
+from fwdstep.linear import LinearForm
 from fwdstep.registry import register
+
+#: Largest signal a scalar Gain or a Sum describes as a dense LinearForm for fusion.
+MAX_FUSED_SIZE = 2000
 
 
 @register
@@ -57,6 +61,20 @@ class Gain(Block):
         if self._matrix:
             return (np.matmul(u[0][:, None, :], self.p.K_T)[:, 0, :],)
         return (self.p.K_T.reshape((-1,) + (1,) * (u[0].ndim - 1)) * u[0],)
+
+    def linear_form(self):
+        """y = K u as a ``LinearForm``, so the engine can fuse it with other linear blocks."""
+        K_T = self.p.K_T
+        size = self.inputs["u"].size
+        if self._matrix:
+            D = np.swapaxes(K_T, -1, -2)
+        elif size <= MAX_FUSED_SIZE:
+            D = K_T.reshape(-1, 1, 1) * np.eye(size)
+        else:
+            return None
+        out = self.outputs["y"].size
+        return LinearForm(A=np.zeros((1, 0, 0)), B={}, C=[np.zeros((1, out, 0))],
+                          D={(0, 0): D})
 
 
 #: The largest number of inputs or outputs of one Sum, Mux or Demux.
@@ -162,6 +180,17 @@ class Sum(Block):
         for j in self._minus:
             y = y - u[j]
         return (y,)
+
+    def linear_form(self):
+        """y = sum_j s_j u_j as a ``LinearForm``, so the engine can fuse it with other
+        linear blocks."""
+        size = self.outputs["y"].size
+        if size > MAX_FUSED_SIZE:
+            return None
+        signs, eye = self.p.signs, np.eye(size)
+        return LinearForm(A=np.zeros((1, 0, 0)), B={}, C=[np.zeros((1, size, 0))],
+                          D={(0, j): signs[:, j, None, None] * eye
+                             for j in range(signs.shape[1])})
 
 
 @register

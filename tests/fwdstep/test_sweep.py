@@ -105,18 +105,18 @@ def test_cli_writes_table_and_figure(path, tmp_path, capsys):
 
 def test_a_raising_variant_does_not_spoil_its_batch(path, monkeypatch):
     """A block that raises for one variant only: the batch is re-run variant by variant."""
-    from blocks.arithmetic import Gain
-    original = Gain.output
+    from blocks.adaptation import AdaptationLaw
+    original = AdaptationLaw.derivative
 
     def fragile(self, t, x, u):
-        if np.any(self.p.K_T == 50.0) and t > 0.1:
-            raise ZeroDivisionError("broken gain")
+        if np.any(self.p.gamma == 5.0) and t > 0.1:
+            raise ZeroDivisionError("broken adaptation")
         return original(self, t, x, u)
 
-    monkeypatch.setattr(Gain, "output", fragile)
-    result = run_sweep(path, {"K": [20, 50, 30]})
+    monkeypatch.setattr(AdaptationLaw, "derivative", fragile)
+    result = run_sweep(path, {"gamma": [2, 5, 3]})
     assert [v.status for v in result.variants] == ["ok", "error", "ok"]
-    assert "broken gain" in result.variants[1].message
+    assert "broken adaptation" in result.variants[1].message
     assert all(result.variants[i].metrics for i in (0, 2))
 
 
