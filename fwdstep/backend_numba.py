@@ -368,7 +368,8 @@ def build_program(d, n_rows: int) -> CompiledProgram:
         if op.state is not None and op.block.name not in fused:
             der_lines += [f"dk = k[{op.state.start}:{op.state.stop}]"] + emitted[1]
     if unsupported:
-        raise ConfigError(f"backend 'compiled' has no kernel for block{'s' if len(unsupported) > 1 else ''} "
+        plural = "s" if len(unsupported) > 1 else ""
+        raise ConfigError(f"backend 'compiled' has no kernel for block{plural} "
                           f"{', '.join(unsupported)}; it supports {', '.join(SUPPORTED)}; use "
                           "'backend: numpy'", file=d.file)
     args = list(ctx.arrays)

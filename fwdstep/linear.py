@@ -276,6 +276,7 @@ class _Planner:
         self.start, self.width = start, width
         self.size = [int(np.prod(sh, dtype=np.int64)) for sh in shapes]
         self.pending: dict = {}        # signal index -> (schedule position, output number)
+        self.taken: set = set()        # schedule positions of fused blocks already placed
         self.available: set = set(constants)
         self.ops: list = []
         self.derivative = self._derivative_terms() if width else None
@@ -330,9 +331,31 @@ class _Planner:
             memo[idx] = self._substitute(terms, memo)
         return memo[idx]
 
+    def _hoist(self) -> None:
+        """Add to the pending group every later fused block whose outputs can already be
+        computed (its feedthrough inputs are available or pending): a tracking error that
+        is only logged then joins the first product instead of widening a later one."""
+        changed = True
+        while changed:
+            changed = False
+            for i, form in self.forms.items():
+                if i in self.taken:
+                    continue
+                step = self.schedule[i]
+                needed = {step.inputs[j] for (_, j) in form.D} - set(self.constants)
+                if all(u in self.available or u in self.pending for u in needed):
+                    self._take(i)
+                    changed = True
+
+    def _take(self, i: int) -> None:
+        self.taken.add(i)
+        for k, idx in enumerate(self.schedule[i].outputs):
+            self.pending[idx] = (i, k)
+
     def _flush(self) -> None:
         if not self.pending:
             return
+        self._hoist()
         memo: dict = {}
         rows = [(idx, self.size[idx]) for idx in self.pending]
         row_terms = [self._expression(idx, memo) for idx in self.pending]
@@ -373,8 +396,8 @@ class _Planner:
     def run(self) -> FusionPlan:
         for i, step in enumerate(self.schedule):
             if i in self.forms:
-                for k, idx in enumerate(step.outputs):
-                    self.pending[idx] = (i, k)
+                if i not in self.taken:
+                    self._take(i)
                 continue
             if any(u in self.pending for u in step.inputs):
                 self._flush()

@@ -2,19 +2,20 @@
 
 ``build_program`` turns the schedule into Python source with one line per block call, in
 evaluation order, and ``exec``s it once per run.  The source is made only of names this
-module invents (``s12``, ``out_3``, ``kv1_3``) and of the objects bound to them; no diagram
+module invents (``s12``, ``out3``, ``k1_7``) and of the objects bound to them; no diagram
 text ever reaches it (the same technique as ``collections.namedtuple`` and
 ``dataclasses``).  What the generic loop did on every stage is done here once:
 
 * every signal is a local variable (no signal list, no index lookups, no tuple building
   beyond the block's input tuple);
 * each block's slice of the stage state and of each stage's derivative buffer is a view
-  made once (the stage state is one preallocated buffer, written in place);
+  made once (the stage state is one preallocated buffer, written in place; stage 1 reads
+  x_n itself);
 * the bound methods ``block.output`` / ``block.derivative`` are looked up once;
 * linear blocks are fused (``fwdstep.linear.plan_fusion``): every group of linear signals
   that becomes computable at the same point is one matrix product into a preallocated
-  buffer whose column views *are* the signals, and all fused states' derivatives are one
-  product at the end of the stage;
+  buffer whose column views *are* the signals, and all fused states' derivatives are more
+  columns of such a product (or one product at the end of the stage);
 * the RK stage sums are in-place NumPy operations on preallocated buffers, in the same
   order as the reference stepper (so the unfused program is bit-identical to it).
 
@@ -50,6 +51,8 @@ class Program:
 
 
 class _Source:
+    """The generated lines and the namespace binding every name they use."""
+
     def __init__(self):
         self.lines: list = []
         self.ns: dict = {}

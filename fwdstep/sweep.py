@@ -39,9 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .compiler import (compile_variants, instantiate_variants, structure_signature)
-from .errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError, OutputError,
-                     SimulationError)
+from .compiler import compile_variants, instantiate_variants, structure_signature
+from .errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
+                     OutputError)
 from .result import atomic_write, error_metrics, safe_path
 from .simulate import SimulationInterrupted, simulate
 
@@ -280,8 +280,9 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
         for number, members in enumerate(batches):
             if progress is not None:
                 shown = _describe(variants[members[0]].values, names)
-                progress(f"batch {number + 1}/{len(batches)}: {len(members)} variant"
-                         f"{'s' if len(members) > 1 else ''} ({shown}{', ...' if len(members) > 1 else ''})")
+                more = ("s", ", ...") if len(members) > 1 else ("", "")
+                progress(f"batch {number + 1}/{len(batches)}: {len(members)} variant{more[0]} "
+                         f"({shown}{more[1]})")
             result.batches.append((len(members), _describe(variants[members[0]].values, names)))
             _run_batch(number, members, specs, blocks, variants, metric, trace_ids, result)
     except KeyboardInterrupt:
@@ -492,4 +493,4 @@ def _check_outdir(outdir: str, force: bool) -> None:
 
 
 __all__ = ["run_sweep", "SweepResult", "Variant", "cmd_sweep", "parse_grid", "parse_random",
-           "variant_values", "SimulationError"]
+           "variant_values"]

@@ -107,7 +107,7 @@ def test_a_block_without_kernel_is_refused(tmp_path):
     path = tmp_path / "d.yaml"
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\n  f: {type: FragileKernelless}\n"
                     "connections:\n  - c.y -> f.u\n")
-    from fwdstep.block import Block, Param
+    from fwdstep.block import Block
     from fwdstep.registry import REGISTRY, register
 
     @register
