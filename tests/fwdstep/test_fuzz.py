@@ -6,7 +6,7 @@ types, renamed blocks).  Every example is loaded, validated, compiled and simula
 steps; the only acceptable exception is ``fwdstep.errors.FwdstepError``, and each example is
 bounded by a wall-clock alarm, so a hang fails the test instead of stalling CI.
 
-Budget: ``FWDSTEP_FUZZ_EXAMPLES`` examples per generator (default 40, about 15 s in all);
+Budget: ``FWDSTEP_FUZZ_EXAMPLES`` examples per generator (default 100, about 20 s in all);
 ``FWDSTEP_FUZZ_REPORT=FILE`` appends every outcome and error message to FILE.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from fwdstep.simulate import simulate
 from fwdstep.spec import load_spec
 
 REPO = Path(__file__).resolve().parents[2]
-EXAMPLES = int(os.environ.get("FWDSTEP_FUZZ_EXAMPLES", "40"))
+EXAMPLES = int(os.environ.get("FWDSTEP_FUZZ_EXAMPLES", "100"))
 REPORT = os.environ.get("FWDSTEP_FUZZ_REPORT")       # file to append every outcome to
 EXAMPLE_SECONDS = 20          # wall-clock limit of one example (load + compile + run)
 MAX_STEPS = 40                # simulated steps per example
