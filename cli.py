@@ -66,6 +66,11 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("fwdstep: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:         # `fwdstep blocks | head`: the reader left; not an error
+        import os
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except Exception as exc:  # noqa: BLE001 - the diagram errors are handled inside commands
         from fwdstep.errors import FwdstepError
         if isinstance(exc, FwdstepError):

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep.block import Block, Param
+from fwdstep.block import Block, Param, as_written
 from fwdstep.errors import ParameterError
 from fwdstep.linear import LinearForm
 from fwdstep.registry import register
@@ -81,12 +81,9 @@ class Gain(Block):
 MAX_PORTS = 1000
 
 
-def _as_written(value) -> list:
+def _as_written(value) -> str:
     """A numeric list for messages: whole numbers without '.0' (YAML [2, 0], not [2.0, 0.0])."""
-    arr = np.asarray(value, dtype=float)
-    if np.all(np.isfinite(arr)) and np.all(arr == np.floor(arr)):
-        return arr.astype(np.int64).tolist()
-    return arr.tolist()
+    return as_written(value)
 
 
 def _shape_param(block: Block, key: str, value, ndims: tuple | None = None) -> tuple:

@@ -92,7 +92,7 @@ def _marginal(r: complex) -> bool:
 
 def _root_text(r: complex) -> str:
     real = 0.0 if _marginal(r) else r.real
-    if abs(r.imag) <= 1e-12 * max(1.0, abs(r)):
+    if abs(r.imag) <= 1e-4 * max(1.0, abs(r)):   # repeated roots scatter by ~eps^(1/m)
         return f"{real:.3g}"
     return f"{real:.3g}{r.imag:+.3g}j"
 

@@ -197,11 +197,30 @@ class Block:
         return out
 
 
+def as_written(value: Any):
+    """A value as a user would have written it in YAML, for messages: whole numbers without
+    '.0', lists as lists, None as null, booleans as true/false."""
+    if value is None:
+        return "null"
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value)
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (ValueError, TypeError):
+        return repr(value)
+    if (np.all(np.isfinite(arr)) and np.all(arr == np.floor(arr))
+            and np.all(np.abs(arr) < 2.0 ** 53)):
+        return str(arr.astype(np.int64).tolist())
+    return str(arr.tolist())
+
+
 def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
     """Check and convert an (already expression-evaluated) parameter value."""
     def bad(expected: str):
         return ParameterError(
-            f"block '{block}' parameter '{key}' must be {expected}, got {value!r}"[:300],
+            f"block '{block}' parameter '{key}' must be {expected}, got {as_written(value)}"[:300],
             block=block)
 
     kind = decl.kind
@@ -215,7 +234,7 @@ def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
         if value not in decl.choices:
             raise ParameterError(
                 f"block '{block}' parameter '{key}' must be one of "
-                f"{', '.join(map(str, decl.choices))}, got {value!r}", block=block)
+                f"{', '.join(map(str, decl.choices))}, got {as_written(value)}", block=block)
         return value
     if kind == "bool":
         if not isinstance(value, (bool, np.bool_)):

@@ -139,7 +139,7 @@ CASES = [
     ("parameter_not_whole", ParameterError, 2,
      "block 'ref' parameter 'ell' must be a whole number, got 1.5"),
     ("parameter_wrong_type", ParameterError, 3,
-     "block 'tf' parameter 'den' must be a number or array, got True"),
+     "block 'tf' parameter 'den' must be a number or array, got true"),
     ("plot_missing_signal", ConfigError, 7,
      "signal 'sink.y' (in log/plots/metrics) does not exist; there is no block 'sink'"),
     ("python_name_tag", YamlError, 2,
