@@ -2,6 +2,7 @@
 
     python examples/study_theorems2to5.py --out docs/figures            # ~15 min on 2 cores
     python examples/study_theorems2to5.py --out /tmp/quick --quick      # ~1 min smoke run
+    python examples/study_theorems2to5.py --out docs/figures --parts 2  # one part only
 
 Three parts, every number printed as a markdown table and written to CSV in --out:
 
@@ -344,19 +345,20 @@ def figure_traces(traces, ells, path, setting="w=0.8"):
 
 def figure_closed_forms(rows, ells, path):
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
-    for ax, key, title in ((axes[0], "theorem2", "Theorem 2 (K = 100)"),
-                           (axes[1], "theorem3", "Theorem 3 (K = 20, Lambda = 1)")):
+    for ax, key, title in ((axes[0], "theorem2", "Theorem 2, K = 100"),
+                           (axes[1], "theorem3", "Theorem 3, K = 20, Lambda = 1")):
         for k, w in enumerate(sorted({r["w"] for r in rows})):
             for kappa, ls in ((1.0, "-"), (2.0, ":")):
                 vals = [next(r[key] for r in rows if r["w"] == w and r["kappa"] == kappa
                              and r["ell"] == e) for e in ells]
                 ax.semilogy(ells, vals, ls, marker="o", color=f"C{k}",
                             label=f"w = {w:g}, kappa = {kappa:g}")
-        ax.set_title(f"point mass m = 1, alpha = {ALPHA:g}: {title}")
+        ax.set_title(title)
         ax.set_xlabel("ell")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("|Delta q / tau_star| at w")
     axes[1].legend(fontsize=7)
+    fig.suptitle(f"point mass m = 1, alpha = {ALPHA:g}: closed-form error gain")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -382,33 +384,41 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="docs/figures", help="output directory")
     parser.add_argument("--quick", action="store_true",
                         help="ell = 1..2, 12 s runs, no vertical arm (a smoke run)")
+    parser.add_argument("--parts", default="123",
+                        help="which parts to run, e.g. 2 or 13 (default: 123)")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     ells = [1, 2] if args.quick else [1, 2, 3, 4, 5, 6]
     common = dict(t_final=12.0 if args.quick else 60.0, step=0.002, log_every=10)
     log = print
 
-    log("1. steady-state error against ell (two-link arm)")
-    rows, traces = part_error_vs_ell(ells, common, vertical=not args.quick, log=log)
-    write_csv(os.path.join(args.out, "theorems2-5_error_vs_ell.csv"), rows)
-    figure_error(rows, ells, os.path.join(args.out, "theorems2-5_error_vs_ell.png"))
-    figure_traces(traces, ells, os.path.join(args.out, "theorems2-5_error_traces.png"))
+    if "1" in args.parts:
+        log("1. steady-state error against ell (two-link arm)")
+        rows, traces = part_error_vs_ell(ells, common, vertical=not args.quick, log=log)
+        write_csv(os.path.join(args.out, "theorems2-5_error_vs_ell.csv"), rows)
+        figure_error(rows, ells, os.path.join(args.out, "theorems2-5_error_vs_ell.png"))
+        figure_traces(traces, ells, os.path.join(args.out, "theorems2-5_error_traces.png"))
+        print("\n## Error against ell (horizontal arm)\n")
+        print(table_error(rows, ells, common["step"]))
+        if not args.quick:
+            print("\n## Error against ell (vertical arm, w = 0.8)\n")
+            print(table_error(rows, ells, common["step"], arm="vertical"))
+    if "2" in args.parts:
+        closed = part_closed_forms(ells)
+        write_csv(os.path.join(args.out, "theorems2-3_pointmass_gain.csv"), closed)
+        figure_closed_forms(closed, ells,
+                            os.path.join(args.out, "theorems2-3_pointmass_gain.png"))
+        print_closed_forms(closed, ells)
+    if "3" in args.parts:
+        log("3. Theorem 2: smallest stabilising K on the point mass")
+        gains = part_min_gain(ells, log, sim_t_final=30.0 if args.quick else 60.0)
+        write_csv(os.path.join(args.out, "theorem2_min_gain.csv"), gains)
+        figure_min_gain(gains, os.path.join(args.out, "theorem2_min_gain.png"))
+        print_min_gain(gains)
+    return 0
 
-    log("2. point-mass closed forms")
-    closed = part_closed_forms(ells)
-    write_csv(os.path.join(args.out, "theorems2-3_pointmass_gain.csv"), closed)
-    figure_closed_forms(closed, ells, os.path.join(args.out, "theorems2-3_pointmass_gain.png"))
 
-    log("3. Theorem 2: smallest stabilising K on the point mass")
-    gains = part_min_gain(ells, log, sim_t_final=30.0 if args.quick else 60.0)
-    write_csv(os.path.join(args.out, "theorem2_min_gain.csv"), gains)
-    figure_min_gain(gains, os.path.join(args.out, "theorem2_min_gain.png"))
-
-    print("\n## Error against ell (horizontal arm)\n")
-    print(table_error(rows, ells, common["step"]))
-    if not args.quick:
-        print("\n## Error against ell (vertical arm, w = 0.8)\n")
-        print(table_error(rows, ells, common["step"], arm="vertical"))
+def print_closed_forms(closed, ells):
     print("\n## Point mass, |Delta q / tau_star|(j w)\n")
     print("| w | kappa | " + " | ".join(f"ell = {e}" for e in ells) + " |")
     print("|" + "---|" * (len(ells) + 2))
@@ -419,6 +429,9 @@ def main(argv=None) -> int:
                              and r["ell"] == e) for e in ells]
                 print(f"| {key} {w:g} | {kappa:g} | " + " | ".join(f"{v:.2e}" for v in vals)
                       + " |")
+
+
+def print_min_gain(gains):
     print("\n## Theorem 2: smallest K (point mass m = 1, alpha = 2)\n")
     print("| ell | K_min / (m alpha) | K_min | K_min, kappa = 2 | max Re eig at 0.99 / 1.01 "
           "K_min | growth of max abs e at 0.9 / 1.1 K_min |")
@@ -427,7 +440,6 @@ def main(argv=None) -> int:
         print(f"| {g['ell']} | {g['c']:.6g} | {g['K_min']:.6g} | {g['K_min_kappa2']:.6g} | "
               f"{g['eig_at_0_99']:+.2e} / {g['eig_at_1_01']:+.2e} | "
               f"{growth_text(g['growth_at_0_9'])} / {growth_text(g['growth_at_1_1'])} |")
-    return 0
 
 
 if __name__ == "__main__":
