@@ -1,6 +1,6 @@
 """Study for docs/theorems2-5.md: does raising ell shrink the steady-state error (Sec. 4.2)?
 
-    python examples/study_theorems2to5.py --out docs/figures            # ~15 min on 2 cores
+    python examples/study_theorems2to5.py --out docs/figures            # ~20 min on 2 cores
     python examples/study_theorems2to5.py --out /tmp/quick --quick      # ~1 min smoke run
     python examples/study_theorems2to5.py --out docs/figures --parts 2  # one part only
 
