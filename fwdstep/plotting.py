@@ -20,11 +20,14 @@ def _pyplot():
 
 
 def figure_specs(result: Result) -> dict:
+    """figure name -> list of (signals, scale) panels."""
     spec = result.diagram.spec
     if spec.plots:
-        return spec.plots
+        return {name: list(zip(panels, spec.plot_scales.get(name, ["linear"] * len(panels))))
+                for name, panels in spec.plots.items()}
     if "error" in spec.metrics:
-        return {"tracking_error": [[spec.metrics["error"]]]}
+        err = spec.metrics["error"]
+        return {"tracking_error": [([err], "linear"), ([err], "log")]}
     return {}
 
 
@@ -38,14 +41,17 @@ def plot_result(result: Result, outdir: str, variants: list | None = None) -> li
     for name, panels in figs.items():
         fig, axes = plt.subplots(len(panels), 1, figsize=(8, 2.6 * len(panels) + 0.6),
                                  sharex=True, squeeze=False)
-        for ax, panel in zip(axes[:, 0], panels):
+        for ax, (panel, scale) in zip(axes[:, 0], panels):
             for sig in panel:
-                _draw(ax, result, sig, variants)
+                _draw(ax, result, sig, variants, log=scale == "log")
+            if scale == "log":
+                ax.set_yscale("log")
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=7, loc="best", ncol=2)
             ax.set_ylabel(", ".join(panel) if len(", ".join(panel)) < 40 else panel[0])
         axes[-1, 0].set_xlabel("t [s]")
         title = result.diagram.spec.description.strip().splitlines()
+        axes[-1, 0].set_xlim(result.t[0], result.t[-1])
         fig.suptitle(f"{name}" + (f" — {title[0][:80]}" if title else ""), fontsize=10)
         fig.tight_layout()
         buf = io.BytesIO()
@@ -57,14 +63,16 @@ def plot_result(result: Result, outdir: str, variants: list | None = None) -> li
     return paths
 
 
-def _draw(ax, result: Result, sig: str, variants):
+def _draw(ax, result: Result, sig: str, variants, log: bool = False):
+    """One line per component (|component| on a log panel); per variant |signal| for a batch."""
     data = result[sig]
     t = result.t
     if result.batch == 1:
         flat = data.reshape(len(t), -1)
         for i in range(flat.shape[1]):
             label = sig if flat.shape[1] == 1 else f"{sig}[{_index(data.shape[1:], i)}]"
-            ax.plot(t, flat[:, i], lw=1.0, label=label)
+            ax.plot(t, np.abs(flat[:, i]) if log else flat[:, i], lw=1.0,
+                    label=f"|{label}|" if log else label)
     else:
         chosen = variants if variants is not None else range(min(result.batch, 8))
         for b in chosen:

@@ -88,6 +88,7 @@ class DiagramSpec:
     metrics: dict
     aliases: dict
     lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
+    plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -550,7 +551,7 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
             parse_signal(name, "log", path, _line(log, i))
             lines[name] = _line(log, i)
     plots_raw = _mapping(doc.get("plots"), "plots", path, _line(doc, "plots"))
-    plots = {}
+    plots, plot_scales = {}, {}
     for fig, panels in plots_raw.items():
         fline = _line(plots_raw, fig)
         if not isinstance(fig, str) or not _FIGURE.match(fig):
@@ -560,14 +561,25 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
             panels = [panels]
         if not isinstance(panels, list) or not panels:
             raise ConfigError(f"plot '{fig}' must be a list of panels", file=path, line=fline)
-        out = []
+        out, scales = [], []
         for panel in panels:
+            scale = "linear"
+            if isinstance(panel, dict):     # {signals: [...], scale: log}
+                extra = [k for k in panel if k not in ("signals", "scale")]
+                if extra or "signals" not in panel or panel.get("scale", "linear") not in (
+                        "linear", "log"):
+                    raise ConfigError(f"plot '{fig}': a panel mapping takes 'signals:' and "
+                                      "optionally 'scale: linear | log'", file=path, line=fline)
+                scale = panel.get("scale", "linear")
+                panel = panel["signals"]
             sigs = panel if isinstance(panel, list) else [panel]
+            scales.append(scale)
             for s in sigs:
                 parse_signal(s, f"plot '{fig}'", path, fline)
                 lines.setdefault(s, fline)
             out.append([str(s) for s in sigs])
         plots[fig] = out
+        plot_scales[fig] = scales
     metrics_raw = _mapping(doc.get("metrics"), "metrics", path, _line(doc, "metrics"))
     metrics = {}
     for key, value in metrics_raw.items():
@@ -587,4 +599,4 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
     return DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
-                       aliases=level.aliases, lines=lines)
+                       aliases=level.aliases, lines=lines, plot_scales=plot_scales)
