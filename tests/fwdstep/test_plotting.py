@@ -36,5 +36,5 @@ def test_bad_panel_scale_is_refused(tmp_path):
     path.write_text(DIAGRAM.replace("scale: log", "scale: loglog"))
     with pytest.raises(ConfigError) as info:
         fwdstep.load_diagram(str(path))
-    assert str(info.value) == (f"{path}:11: plot 'decay': a panel mapping takes 'signals:' and "
+    assert str(info.value) == (f"{path}:10: plot 'decay': a panel mapping takes 'signals:' and "
                                "optionally 'scale: linear | log'")
