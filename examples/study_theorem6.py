@@ -167,6 +167,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--t-final", type=float, default=120.0, help="run length in s (>= 60)")
     ap.add_argument("--ells", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    ap.add_argument("--dist-frequency", type=float, default=None,
+                    help="disturbance frequency in rad/s (default: the diagrams' 0.8)")
     ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--no-write", action="store_true", help="print only; leave docs/ alone")
     ap.add_argument("--save", help="also keep the raw results in this .npz file")
@@ -175,9 +177,11 @@ def main(argv=None) -> int:
 
     from blocks.robot import TwoLinkArm
     theta_true = TwoLinkArm.parameter_vector()
-    jobs = [("Slotine-Li", SLOTINE_LI, {"t_final": args.t_final})]
-    jobs += [(f"Theorem 6, ell = {ell}", THEOREM6, {"t_final": args.t_final, "ell": ell})
-             for ell in args.ells]
+    common = {"t_final": args.t_final}
+    if args.dist_frequency is not None:
+        common["dist_frequency"] = args.dist_frequency
+    jobs = [("Slotine-Li", SLOTINE_LI, common)]
+    jobs += [(f"Theorem 6, ell = {ell}", THEOREM6, dict(common, ell=ell)) for ell in args.ells]
     started = time.perf_counter()
     if args.load:
         with np.load(args.load, allow_pickle=True) as data:
