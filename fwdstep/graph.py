@@ -87,6 +87,12 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
     for blk in blocks:
         for port in blk.inputs.values():
             if (blk.name, port.name) not in drivers and not port.optional:
+                outer = spec.input_ports.get((blk.name, port.name))
+                if outer is not None:     # name the subsystem's port, where the user can fix it
+                    label, ofile, oline = outer
+                    raise WiringError(f"subsystem input port '{label}' is not connected (it "
+                                      f"drives {blk.name}.{port.name})", file=ofile, line=oline,
+                                      block=label.rsplit(".", 1)[0], port=label.rsplit(".", 1)[1])
                 entry = entry_of.get(blk.name)
                 raise WiringError(f"block '{blk.name}' input port '{port.name}' is not connected",
                                   file=entry.file if entry else spec.file,

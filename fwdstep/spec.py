@@ -89,6 +89,7 @@ class DiagramSpec:
     aliases: dict
     lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
     plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
+    input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -270,6 +271,7 @@ class _Level:
         self.sub_inputs: dict[str, dict] = {}         # subsystem -> input name -> [(blk, port)]
         self.sub_outputs: dict[str, dict] = {}        # subsystem -> output name -> (blk, port)
         self.aliases: dict[str, str] = {}
+        self.input_ports: dict = {}     # (block, port) inside -> (outermost "sub.port", file, line)
 
     def full(self, local: str) -> str:
         return f"{self.prefix}{local}"
@@ -386,6 +388,8 @@ class _Level:
                 resolved.extend(child.resolve_dst(blk, port, path, _line(ins, pname),
                                                   f"subsystem input '{pname}'"))
             self.sub_inputs[name][pname] = resolved
+            for target in resolved:
+                self.input_ports[target] = (f"{self.full(name)}.{pname}", file, line)
         self.sub_outputs[name] = {}
         for pname, source in outs.items():
             blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
@@ -394,6 +398,8 @@ class _Level:
             self.sub_outputs[name][pname] = src
             self.aliases[f"{self.full(name)}.{pname}"] = f"{src[0]}.{src[1]}"
         self.aliases.update(child.aliases)
+        for target, where in child.input_ports.items():
+            self.input_ports.setdefault(target, where)
         self.blocks.extend(child.blocks)
         self.connections.extend(child.connections)
         self.local_blocks[name] = "subsystem"
@@ -599,4 +605,5 @@ def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
     return DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
-                       aliases=level.aliases, lines=lines, plot_scales=plot_scales)
+                       aliases=level.aliases, lines=lines, plot_scales=plot_scales,
+                       input_ports=level.input_ports)

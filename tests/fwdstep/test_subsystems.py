@@ -371,8 +371,11 @@ def test_unconnected_input_inside_subsystem_names_path(tmp_path):
 blocks:
   s: {type: subsystem, file: gain.yaml}
 """)
-    with pytest.raises(WiringError, match=r"block 's/g' input port 'u' is not connected"):
+    with pytest.raises(WiringError) as err:
         fwdstep.load_diagram(top)
+    # the message names the subsystem's port, at the parent's line, where the user fixes it
+    assert str(err.value) == (f"{top}:{line_of(top, 's: {type: subsystem')}: subsystem input "
+                              "port 's.u' is not connected (it drives s/g.u)")
 
 
 def test_shape_mismatch_across_the_boundary_points_at_the_parent_line(tmp_path):
