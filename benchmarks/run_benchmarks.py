@@ -9,7 +9,8 @@
 (b) diagrams/theorem1.yaml with ell = 3 vs its hand-written loop;
 (c) a 256-variant sweep of slotine_li.yaml (Lambda random in [2, 10]) vs one run (target
     <= 8) and vs 256 sequential runs (estimated as 256 x one run; --full runs them);
-(d) run time of theorem1.yaml against ell = 1..10 (q_d constant), with its hand loop;
+(d) run time of theorem1.yaml against ell = 1..10 (q_d constant), with its hand loop, and
+    of an n-link arm (NLinkArm) loop against the number of joints n = 2..8;
 (a) and (b) also time the optional compiled backend (numba) when it is installed, in the
 process and in fresh processes that load the compiled code from the disk cache;
 plus the other targets of issue 7: memory of a 10 s run logging every signal every step,
@@ -243,6 +244,61 @@ def bench_ell(repeats, t_final, report):
     report["d"] = rows
 
 
+NLINK = """
+parameters: {{ell: 2, alpha: 4, K: 30*eye({n}), Gamma: 2}}
+blocks:
+  qd:    {{type: Sine, amplitude: {amp}, frequency: {freq}, derivatives: 2}}
+  arm:   {{type: NLinkArm, lengths: {lengths}}}
+  ref:   {{type: ReferenceDynamics, variant: eq16, ell: ell, n: {n}, alpha: alpha}}
+  e:     {{type: Sum, signs: "+-", shape: [{n}]}}
+  s:     {{type: Sum, signs: "+-", shape: [{n}]}}
+  Y:     {{type: NLinkRegressor, lengths: {lengths}}}
+  Yth:   {{type: Product, a_shape: [{n}, {p}], b_shape: [{p}]}}
+  Ks:    {{type: Gain, gain: K}}
+  tau:   {{type: Sum, signs: "+-", shape: [{n}]}}
+  adapt: {{type: AdaptationLaw, regressor_shape: [{n}, {p}], gamma: Gamma}}
+connections:
+  - arm.q -> ref.q, Y.q, e.u1
+  - arm.qdot -> ref.qdot, Y.qdot, s.u1
+  - qd.y -> ref.q_d, e.u2
+  - qd.y_d1 -> ref.qdot_d
+  - qd.y_d2 -> ref.qddot_d
+  - ref.z -> s.u2, Y.zeta
+  - ref.zdot -> Y.zetad
+  - Y.Y -> Yth.a, adapt.W
+  - adapt.theta_hat -> Yth.b
+  - s.y -> Ks.u, adapt.e
+  - Yth.y -> tau.u1
+  - Ks.y -> tau.u2
+  - tau.y -> arm.tau
+simulation: {{t_final: {t_final}, step: 0.001, solver: rk4, log_every: 10}}
+log: [e.y]
+"""
+
+
+def bench_joints(repeats, t_final, report):
+    """Run time against the number of joints: eq. (16) reference dynamics (ell = 2) and the
+    adaptive law (4)-(5) on the planar n-link arm (NLinkArm, NLinkRegressor)."""
+    import tempfile
+    t_final = t_final or 2.0
+    print(f"(d') n-link arm, eq. (16) + (4)-(5), {t_final:g} s at step 1e-3, against n")
+    fns, states = {}, {}
+    with tempfile.TemporaryDirectory() as folder:
+        for n in (2, 3, 4, 6, 8):
+            text = NLINK.format(n=n, p=4 * n, amp=[0.3] * n, freq=[1.0 + 0.1 * i for i in range(n)],
+                                lengths=[1.0] * n, t_final=t_final)
+            path = os.path.join(folder, f"nlink{n}.yaml")
+            with open(path, "w") as fh:
+                fh.write(text)
+            d = fwdstep.load_diagram(path)
+            states[n] = d.n_states
+            fns[n] = (lambda d=d: fwdstep.simulate(d))
+        res = interleaved(fns, repeats)
+    for n, r in res.items():
+        line(f"n = {n} joints ({states[n]} states)", r, res[2])
+    report["joints"] = {n: _strip(r) for n, r in res.items()}
+
+
 def bench_memory(t_final, report):
     spec = load_spec(SLOTINE)
     spec.simulation.t_final = t_final or 10.0
@@ -307,6 +363,7 @@ def main(argv=None) -> int:
         bench_sweep(repeats, 64 if args.quick else 256, t_final, args.full, report)
     if "d" in only:
         bench_ell(repeats, t_final, report)
+        bench_joints(repeats, t_final, report)
     if "memory" in only:
         bench_memory(t_final, report)
     if "startup" in only:
