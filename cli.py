@@ -20,6 +20,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="overwrite existing results")
     run.add_argument("--no-plots", action="store_true", help="skip the figures")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress or summary line")
+    run.add_argument("--backend", choices=("numpy", "compiled"), default=None,
+                     help="override simulation.backend (compiled needs numba: fwdstep[fast])")
 
     val = sub.add_parser("validate", help="load and compile a diagram (exit 0 or 2)")
     val.add_argument("diagram")
@@ -55,7 +57,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "run":
             return commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
-                                    plots=not args.no_plots, quiet=args.quiet)
+                                    plots=not args.no_plots, quiet=args.quiet,
+                                    backend=args.backend)
         if args.command == "validate":
             return commands.cmd_validate(args.diagram, args.set)
         if args.command == "blocks":

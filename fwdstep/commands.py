@@ -62,7 +62,7 @@ def cmd_validate(path: str, sets=None) -> int:
 
 
 def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False,
-            plots: bool = True, quiet: bool = False) -> int:
+            plots: bool = True, quiet: bool = False, backend: str | None = None) -> int:
     from .compiler import load_diagram
     from .simulate import simulate
     outdir = outdir or default_outdir(path)
@@ -75,7 +75,7 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
     code = EXIT_OK
     progress = None if quiet else _progress
     try:
-        result = simulate(d, progress=progress)
+        result = simulate(d, progress=progress, backend=backend)
     except SimulationError as exc:
         result = exc.result
         _err(str(exc))

@@ -67,14 +67,26 @@ class CompiledDiagram:
         return None, index
 
 
+#: parameter kinds whose values may select code paths rather than numbers (never stacked)
+STRUCTURAL_KINDS = ("str", "choice", "bool", "int")
+
+
 def structure_signature(blocks: list) -> tuple:
-    """What must be equal for variants to share one batched run."""
+    """What must be equal for variants to share one batched run: names, types, state sizes,
+    port shapes, the shapes of the stacked ``p`` arrays, and the values of non-numeric
+    parameters (a variant name or a flag may pick a different code path inside a block, which
+    stacking numbers could not express)."""
     sig = []
     for b in blocks:
+        decls = type(b).params
+        structural = tuple(sorted(
+            (k, repr(v)) for k, v in getattr(b, "values", {}).items()
+            if k in decls and decls[k].kind in STRUCTURAL_KINDS))
         sig.append((b.name, type(b).__name__, b.n_states,
                     tuple((p.name, p.shape) for p in b.inputs.values()),
                     tuple((p.name, p.shape) for p in b.outputs.values()),
-                    tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items()))))
+                    tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
+                    structural))
     return tuple(sig)
 
 

@@ -17,6 +17,7 @@ their blocks are renamed ``<subsystem>/<block>`` and their declared ports are wi
 """
 from __future__ import annotations
 
+import copy
 import math
 import os
 import re
@@ -263,8 +264,10 @@ def _parse_connection(text: Any, file: str, line: int | None):
 class _Level:
     """One diagram file being expanded (the top level or a subsystem)."""
 
-    def __init__(self, doc: LineDict, file: str, namespace: dict, prefix: str, stack: tuple):
+    def __init__(self, doc: LineDict, file: str, namespace: dict, prefix: str, stack: tuple,
+                 cache: dict | None = None):
         self.doc, self.file, self.ns, self.prefix, self.stack = doc, file, namespace, prefix, stack
+        self.cache = cache
         self.blocks: list[BlockEntry] = []
         self.connections: list[Connection] = []
         self.local_blocks: dict[str, str] = {}        # local name -> "block" | "subsystem"
@@ -356,7 +359,7 @@ class _Level:
             why = "is a directory" if os.path.isdir(path) else "does not exist"
             raise ConfigError(f"subsystem '{self.full(name)}': file '{body['file']}' {why} "
                               f"(looked for {path})", file=file, line=_line(body, "file"))
-        child_doc = _read_document(path)
+        child_doc = _read_document(path, self.cache)
         passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
         overrides = {}
         for key, value in passed.items():
@@ -374,7 +377,7 @@ class _Level:
                                      line=_line(passed, key))
         ns = resolve_parameters(child_params, {}, path, preset=overrides)
         child = _Level(child_doc, path, ns, f"{self.full(name)}/",
-                       self.stack + (os.path.realpath(path),))
+                       stack=self.stack + (os.path.realpath(path),), cache=self.cache)
         child.expand()
         ports = _mapping(child_doc.get("ports"), "ports", path, _line(child_doc, "ports"))
         ins = _mapping(ports.get("inputs"), "ports.inputs", path, _line(ports, "inputs"))
@@ -455,7 +458,20 @@ class _Level:
                     self.connections.append(Connection(src, dst, file, line, text))
 
 
-def _read_document(path: str) -> LineDict:
+def _read_document(path: str, cache: dict | None = None) -> LineDict:
+    """Parse and check a diagram file.  With ``cache`` (a dict kept by the caller, e.g. a
+    sweep building many variants), each file is parsed once per (path, mtime, size) and every
+    caller gets its own deep copy of the document."""
+    if cache is not None:
+        try:
+            st = os.stat(path)
+            key = (os.path.realpath(path), st.st_mtime_ns, st.st_size)
+        except OSError:
+            key = None
+        if key is not None:
+            if key not in cache:
+                cache[key] = _read_document(path)
+            return copy.deepcopy(cache[key])
     doc = read_yaml_file(path)
     if doc is None:
         raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
@@ -538,13 +554,15 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
     return cfg
 
 
-def load_spec(path: str, overrides: dict | None = None) -> DiagramSpec:
-    """Read, check and flatten a diagram file (and its subsystems)."""
+def load_spec(path: str, overrides: dict | None = None,
+              cache: dict | None = None) -> DiagramSpec:
+    """Read, check and flatten a diagram file (and its subsystems).  ``cache``: see
+    ``_read_document`` (parse each file once across many loads)."""
     path = os.path.normpath(path)
-    doc = _read_document(path)
+    doc = _read_document(path, cache)
     ns = resolve_parameters(doc.get("parameters"), overrides or {}, path,
                             line=_line(doc, "parameters"))
-    level = _Level(doc, path, ns, "", (os.path.realpath(path),))
+    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache)
     level.expand()
     sim = _simulation(doc, ns, path)
     lines = {}

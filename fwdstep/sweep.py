@@ -209,31 +209,6 @@ def variant_values(grid: dict, random: dict, samples: int, seed: int) -> list:
     return out
 
 
-@contextlib.contextmanager
-def _parse_each_file_once():
-    """While building many variants of one diagram, parse each YAML file once (the parse is
-    90% of ``load_spec``); every caller still gets its own copy of the document."""
-    from . import spec as spec_module
-    original = spec_module.read_yaml_file
-    cache: dict = {}
-
-    def cached(path):
-        try:
-            st = os.stat(path)
-        except OSError:
-            return original(path)
-        key = (os.path.realpath(path), st.st_mtime_ns, st.st_size)
-        if key not in cache:
-            cache[key] = original(path)
-        return copy.deepcopy(cache[key])
-
-    spec_module.read_yaml_file = cached
-    try:
-        yield
-    finally:
-        spec_module.read_yaml_file = original
-
-
 # ---------------------------------------------------------------------------- running
 def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
               samples: int = 0, seed: int = 0, overrides: dict | None = None,
@@ -248,24 +223,24 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     wall0 = time.perf_counter()
     all_values = variant_values(grid, random, samples, seed)
     names = list(grid) + list(random)
-    with _parse_each_file_once():
-        base = load_spec(path, overrides)
-        for name in names:
-            if name not in base.parameters:
-                raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
-                                  f"'{name}'; parameters are: {', '.join(base.parameters)}",
-                                  file=base.file)
-            if name in overrides:
-                raise ConfigError(f"parameter '{name}' is both swept and set with --set")
-        specs, blocks, made = [], [], {}
-        for values in all_values:
-            try:
-                specs.append(load_spec(path, {**overrides, **values}))
-                blocks.extend(instantiate_variants(specs[-1:], made))
-            except DiagramError as exc:
-                shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
-                raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
-                                line=exc.line, block=exc.block, port=exc.port) from None
+    documents: dict = {}            # each YAML file parsed once for all variants
+    base = load_spec(path, overrides, cache=documents)
+    for name in names:
+        if name not in base.parameters:
+            raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
+                              f"'{name}'; parameters are: {', '.join(base.parameters)}",
+                              file=base.file)
+        if name in overrides:
+            raise ConfigError(f"parameter '{name}' is both swept and set with --set")
+    specs, blocks, made = [], [], {}
+    for values in all_values:
+        try:
+            specs.append(load_spec(path, {**overrides, **values}, cache=documents))
+            blocks.extend(instantiate_variants(specs[-1:], made))
+        except DiagramError as exc:
+            shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
+            raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
+                            line=exc.line, block=exc.block, port=exc.port) from None
     metric = base.metrics.get("error")
     variants = [Variant(i, values) for i, values in enumerate(all_values)]
     groups: dict = {}

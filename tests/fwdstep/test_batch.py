@@ -130,3 +130,15 @@ def test_different_structures_are_refused(path):
     specs = [load_spec(path, {"ell": 1}), load_spec(path, {"ell": 2})]
     with pytest.raises(ConfigError, match="differ in structure"):
         compile_batch(specs)
+
+
+def test_variants_differing_in_a_flag_are_not_stacked():
+    """A str/bool/choice/int parameter may select a code path: never stack across it."""
+    from fwdstep.compiler import structure_signature
+    from fwdstep.registry import load_library
+    reg = load_library()
+    a = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=False)]
+    b = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=True)]
+    c = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=False)]
+    assert structure_signature(a) != structure_signature(b)
+    assert structure_signature(a) == structure_signature(c)
