@@ -137,6 +137,8 @@ class Sum(Block):
         "signs": Param("str", doc="one '+' or '-' per input, e.g. \"+-\""),
         "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar"),
     }
+    #: kept in ``p`` per variant, so a batch may mix different signs
+    stacked_params = ("signs",)
     example = {"signs": "+-", "shape": [2]}
 
     def setup(self, signs, shape):
@@ -216,6 +218,8 @@ class Product(Block):
         "transpose_a": Param("bool", default=False, doc="multiply by a^T"),
         "transpose_b": Param("bool", default=False, doc="multiply by b^T"),
     }
+    #: kept in ``p`` per variant, so a batch may mix transposes of square operands
+    stacked_params = ("transpose_a", "transpose_b")
     example = {"a_shape": [3, 2], "b_shape": [2]}
 
     def setup(self, a_shape, b_shape, transpose_a, transpose_b):

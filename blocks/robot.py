@@ -69,8 +69,27 @@ def _vector_param(block: Block, key: str, value, n: int) -> np.ndarray:
     return arr.copy()
 
 
+class MechanicalPlant(Block):
+    """Base of the plants of eq. (1): state (q, qdot), input tau and optional tau_star, and the
+    measurable outputs q, qdot (state only).  Not registered; subclasses add the dynamics."""
+
+    def declare_plant(self, n: int, q0, qdot0) -> None:
+        self._n = n
+        self.declare_input("tau", (n,))
+        self.declare_input("tau_star", (n,), optional=True)
+        self.declare_output("q", (n,), feedthrough=())
+        self.declare_output("qdot", (n,), feedthrough=())
+        self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
+                                                  _vector_param(self, "qdot0", qdot0, n)]))
+        self.state_labels = [f"q{i + 1}" for i in range(n)] + [f"qdot{i + 1}" for i in range(n)]
+
+    def output(self, t, x, u):
+        n = self._n
+        return x[:, :n], x[:, n:]
+
+
 @register
-class TwoLinkArm(Block):
+class TwoLinkArm(MechanicalPlant):
     """Two-link planar arm (Slotine & Li): H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star.
 
     Equation (1) of the paper with n = 2 (the paper writes M for H):
@@ -148,14 +167,7 @@ class TwoLinkArm(Block):
             raise ParameterError(f"block {self.name!r} parameters give an inertia matrix that is "
                                  f"not positive definite for every q2 (need I1, Ie or lc1 > 0)",
                                  block=self.name)
-        self.declare_input("tau", (2,))
-        self.declare_input("tau_star", (2,), optional=True)
-        self.declare_output("q", (2,), feedthrough=())
-        self.declare_output("qdot", (2,), feedthrough=())
-        x0 = np.concatenate([_vector_param(self, "q0", q0, 2),
-                             _vector_param(self, "qdot0", qdot0, 2)])
-        self.declare_state(4, x0)
-        self.state_labels = ["q1", "q2", "qdot1", "qdot2"]
+        self.declare_plant(2, q0, qdot0)
         self.set_param("theta", theta)
         self.finalize(1)
 
@@ -165,9 +177,6 @@ class TwoLinkArm(Block):
         self._gravity = bool(np.any(theta[:, 4:] != 0.0))
         # one variant: plain floats, for the scalar fast path of a single run
         self._a_float = tuple(theta[0].tolist()) if theta.shape[0] == 1 else None
-
-    def output(self, t, x, u):
-        return x[:, 0:2], x[:, 2:4]
 
     def derivative(self, t, x, u):
         tau, tau_star = u
@@ -324,7 +333,7 @@ class Regressor(Block):
 
 
 @register
-class PointMass(Block):
+class PointMass(MechanicalPlant):
     """n independent point masses: m qddot = tau + tau_star (eq. (1) with H = diag(m), C = g = 0).
 
     The simplest plant satisfying Properties 1-3; its regressor is ``PointMassRegressor``
@@ -372,18 +381,8 @@ class PointMass(Block):
         if np.any(m <= 0.0):
             raise ParameterError(f"block {self.name!r} parameter 'mass' must be positive, "
                                  f"got {np.asarray(mass).tolist()}", block=self.name)
-        self._n = n
-        self.declare_input("tau", (n,))
-        self.declare_input("tau_star", (n,), optional=True)
-        self.declare_output("q", (n,), feedthrough=())
-        self.declare_output("qdot", (n,), feedthrough=())
-        self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
-                                                  _vector_param(self, "qdot0", qdot0, n)]))
+        self.declare_plant(n, q0, qdot0)
         self.set_param("inv_mass", 1.0 / m)
-
-    def output(self, t, x, u):
-        n = self._n
-        return x[:, :n], x[:, n:]
 
     def derivative(self, t, x, u):
         n = self._n
@@ -518,7 +517,7 @@ def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
 
 
 @register
-class NLinkArm(Block):
+class NLinkArm(MechanicalPlant):
     """Planar n-link arm with revolute joints: H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star.
 
     Equation (1) of the paper for a serial chain moving in a vertical (gravity != 0) or
@@ -574,14 +573,8 @@ class NLinkArm(Block):
     def setup(self, lengths, masses, com, com_angle, inertias, gravity, q0, qdot0):
         lengths, m, lc, angle, inertia = _n_link_values(self.name, lengths, masses, com,
                                                         com_angle, inertias)
-        n = self._n = lengths.size
-        self.declare_input("tau", (n,))
-        self.declare_input("tau_star", (n,), optional=True)
-        self.declare_output("q", (n,), feedthrough=())
-        self.declare_output("qdot", (n,), feedthrough=())
-        self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
-                                                  _vector_param(self, "qdot0", qdot0, n)]))
-        self.state_labels = [f"q{i + 1}" for i in range(n)] + [f"qdot{i + 1}" for i in range(n)]
+        n = lengths.size
+        self.declare_plant(n, q0, qdot0)
         self.set_param("lengths", lengths)
         self.set_param("theta", n_link_theta(m, lc, angle, inertia))
         self.set_param("gravity", gravity)
@@ -595,10 +588,6 @@ class NLinkArm(Block):
         self._m = theta[:, :, 0]
         self._s = theta[:, :, 1] + 1j * theta[:, :, 2]
         self._J_cum = np.einsum("ki,li,bi->bkl", self._mask, self._mask, theta[:, :, 3])
-
-    def output(self, t, x, u):
-        n = self._n
-        return x[:, :n], x[:, n:]
 
     def derivative(self, t, x, u):
         n = self._n

@@ -333,6 +333,8 @@ class RandomDisturbance(_SinusoidSum):
         "seed": Param("int", default=0, doc="random generator seed"),
         "components": Param("int", default=50, doc="sinusoids per channel"),
     }
+    #: everything drawn from the seed lives in ``p``, so a batch may mix seeds
+    stacked_params = ("seed",)
     example = {"n": 2, "std": [0.5, 1.0], "cutoff": 10.0, "seed": 7, "components": 20}
 
     def setup(self, n, std, cutoff, seed, components):

@@ -88,6 +88,9 @@ class Block:
     params: ClassVar[dict[str, Param]] = {}
     #: parameters that make a valid instance, used by the contract tests and ``fwdstep blocks``
     example: ClassVar[dict] = {}
+    #: str/bool/choice/int parameters the block stores in ``p`` and handles per variant, so a
+    #: batch may mix their values (all others of those kinds split batches)
+    stacked_params: ClassVar[tuple] = ()
     #: True when ``initial_state(t0, u)`` must be called with the inputs at t0
     init_from_inputs: ClassVar[bool] = False
 

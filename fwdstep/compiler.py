@@ -81,7 +81,8 @@ def structure_signature(blocks: list) -> tuple:
         decls = type(b).params
         structural = tuple(sorted(
             (k, repr(v)) for k, v in getattr(b, "values", {}).items()
-            if k in decls and decls[k].kind in STRUCTURAL_KINDS))
+            if k in decls and decls[k].kind in STRUCTURAL_KINDS
+            and k not in getattr(type(b), "stacked_params", ())))
         sig.append((b.name, type(b).__name__, b.n_states,
                     tuple((p.name, p.shape) for p in b.inputs.values()),
                     tuple((p.name, p.shape) for p in b.outputs.values()),

@@ -133,12 +133,26 @@ def test_different_structures_are_refused(path):
 
 
 def test_variants_differing_in_a_flag_are_not_stacked():
-    """A str/bool/choice/int parameter may select a code path: never stack across it."""
+    """A str/bool/choice/int parameter may select a code path: never stack across it unless
+    the block declares it in ``stacked_params`` (keeps it in ``p`` per variant)."""
+    from fwdstep.block import Block, Param
     from fwdstep.compiler import structure_signature
     from fwdstep.registry import load_library
-    reg = load_library()
-    a = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=False)]
-    b = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=True)]
-    c = [reg["Product"]("p", a_shape=[2, 2], b_shape=[2], transpose_a=False)]
-    assert structure_signature(a) != structure_signature(b)
-    assert structure_signature(a) == structure_signature(c)
+
+    class Switch(Block):
+        """Test-only: y = u or y = -u by a choice that is NOT stored in p."""
+        params = {"mode": Param("choice", choices=("plus", "minus")), "k": Param("float")}
+
+        def setup(self, mode, k):
+            self.declare_input("u", (2,))
+            self.declare_output("y", (2,))
+            self.set_param("k", k)
+
+    a, b, c = Switch("s", mode="plus", k=1.0), Switch("s", mode="minus", k=1.0), \
+        Switch("s", mode="plus", k=2.0)
+    assert structure_signature([a]) != structure_signature([b])
+    assert structure_signature([a]) == structure_signature([c])
+    prod = load_library()["Product"]
+    assert "transpose_a" in prod.stacked_params
+    assert (structure_signature([prod("p", a_shape=[2, 2], b_shape=[2], transpose_a=True)])
+            == structure_signature([prod("p", a_shape=[2, 2], b_shape=[2])]))
