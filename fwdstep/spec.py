@@ -39,6 +39,7 @@ SOLVER_NAMES = ("euler", "heun", "rk4")
 MAX_STEPS = 50_000_000
 MAX_SUBSYSTEM_DEPTH = 16
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_SIM_OVERRIDE = re.compile(r"^simulation\.[A-Za-z_]+$")
 _FIGURE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]{0,63}$")
 
 
@@ -170,8 +171,9 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"--set '{text}' must have the form NAME=VALUE")
     name, raw = text.split("=", 1)
     name = name.strip()
-    if not _NAME.match(name):
-        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name")
+    if not _NAME.match(name) and not _SIM_OVERRIDE.match(name):
+        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name (or "
+                          "simulation.SETTING)")
     try:
         value = parse_yaml_text(raw) if raw.strip() else None
     except YamlError:
@@ -560,8 +562,19 @@ def load_spec(path: str, overrides: dict | None = None,
     ``_read_document`` (parse each file once across many loads)."""
     path = os.path.normpath(path)
     doc = _read_document(path, cache)
-    ns = resolve_parameters(doc.get("parameters"), overrides or {}, path,
+    overrides = dict(overrides or {})
+    sim_overrides = {k.split(".", 1)[1]: overrides.pop(k) for k in list(overrides)
+                     if k.startswith("simulation.")}
+    ns = resolve_parameters(doc.get("parameters"), overrides, path,
                             line=_line(doc, "parameters"))
+    if sim_overrides:       # --set simulation.t_final=20: replaces the file's setting
+        sim_raw = _mapping(doc.get("simulation"), "simulation", path, _line(doc, "simulation"))
+        merged = LineDict(sim_raw)
+        merged.line, merged.key_lines = sim_raw.line, dict(getattr(sim_raw, "key_lines", {}))
+        merged.update(sim_overrides)
+        original, doc = doc, LineDict(doc)
+        doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
+        doc["simulation"] = merged
     level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache)
     level.expand()
     sim = _simulation(doc, ns, path)

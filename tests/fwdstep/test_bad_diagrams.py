@@ -313,7 +313,7 @@ def test_set_unknown_parameter_cli(good, capsys):
 @pytest.mark.parametrize("arg, message", [
     ("alpha", "--set 'alpha' must have the form NAME=VALUE"),
     ("alpha=", "--set 'alpha=' has no value"),
-    ("2x=1", "--set '2x=1': '2x' is not a parameter name"),
+    ("2x=1", "--set '2x=1': '2x' is not a parameter name (or simulation.SETTING)"),
 ])
 def test_set_malformed(good, capsys, arg, message):
     assert cli.main(["validate", good, "--set", arg]) == 2
