@@ -410,30 +410,26 @@ class _Level:
         self.local_blocks[name] = "subsystem"
 
     def resolve_src(self, blk: str, port: str, file, line, what: str = "connection") -> tuple:
-        kind = self.local_blocks.get(blk)
-        if kind == "subsystem":
-            outs = self.sub_outputs[blk]
-            if port not in outs:
-                raise WiringError(f"subsystem '{self.full(blk)}' has no output port '{port}'; "
-                                  f"output ports are: {', '.join(outs) or '(none)'}", file=file,
-                                  line=line, block=self.full(blk), port=port)
-            return outs[port]
-        if kind is None:
-            raise self._no_block(blk, file, line, what)
-        return (self.full(blk), port)
+        """The (block, port) that drives ``blk.port`` at this level (through subsystems)."""
+        return self._resolve(blk, port, "output", file, line, what)
 
     def resolve_dst(self, blk: str, port: str, file, line, what: str = "connection") -> list:
+        """The inner (block, port) inputs that ``blk.port`` at this level stands for."""
+        return self._resolve(blk, port, "input", file, line, what)
+
+    def _resolve(self, blk, port, direction, file, line, what):
         kind = self.local_blocks.get(blk)
-        if kind == "subsystem":
-            ins = self.sub_inputs[blk]
-            if port not in ins:
-                raise WiringError(f"subsystem '{self.full(blk)}' has no input port '{port}'; "
-                                  f"input ports are: {', '.join(ins) or '(none)'}", file=file,
-                                  line=line, block=self.full(blk), port=port)
-            return ins[port]
         if kind is None:
             raise self._no_block(blk, file, line, what)
-        return [(self.full(blk), port)]
+        if kind != "subsystem":
+            own = (self.full(blk), port)
+            return own if direction == "output" else [own]
+        ports = self.sub_outputs[blk] if direction == "output" else self.sub_inputs[blk]
+        if port not in ports:
+            raise WiringError(f"subsystem '{self.full(blk)}' has no {direction} port '{port}'; "
+                              f"{direction} ports are: {', '.join(ports) or '(none)'}", file=file,
+                              line=line, block=self.full(blk), port=port)
+        return ports[port]
 
     def _no_block(self, blk, file, line, what):
         import difflib
