@@ -280,6 +280,10 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
     """The Result of a run (partial after an error), or the error carrying it."""
     B, N = d.batch, d.n_states
     h, bound = d.spec.simulation.step, d.spec.simulation.bound
+    if status == "ok":                  # a diverged state stays the reported cause
+        bad = _first_non_finite_output(d, t_log, logs, row, alive, died_at)
+        if bad is not None:
+            row, status, message, x = bad
     if B > 1 and (~alive).any() and status == "ok":
         status = "partially diverged"
         message = f"{int((~alive).sum())} of {B} variants diverged"
@@ -292,6 +296,8 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
     result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
                     wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
                     diverged_at=died_at)
+    if status == "diverged" and isinstance(x, str):          # a block output, not a state
+        raise DivergenceError(message, time=float(t_out[-1]), block=x, result=result)
     if status == "diverged":
         blk, _ = d.state_owner(int(np.argmax(~(np.abs(x) <= bound)) % max(N, 1)))
         raise DivergenceError(message, time=t + h, block=blk.name if blk else None,
@@ -300,6 +306,59 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
         error.result = result
         raise error
     return result
+
+
+def _first_non_finite_output(d: CompiledDiagram, t_log, logs, row, alive, died_at):
+    """The first recorded row where a block output is NaN or inf while the states were
+    finite (a Gain of 1e308 on a large signal: no state is involved, so the bound check
+    never sees it).  One vectorised scan of the log, O(log size).  For a single run returns
+    (rows to keep, "diverged", message, blamed block name) or None; in a batch the variant
+    is marked diverged at that time (``alive``/``died_at`` updated in place) and None is
+    returned unless every variant is gone.  Blamed is the earliest signal in evaluation
+    order that is not finite at that row: with the default log (every signal) that is the
+    block that produced it."""
+    if row == 0 or not logs:
+        return None
+    B = d.batch
+    first = np.full(B, row)                   # first non-finite row per variant
+    for L in logs:
+        flat = L[:row].reshape(row, B, -1)
+        bad = ~np.isfinite(flat).all(axis=2)  # (rows, B)
+        hit = bad.any(axis=0)
+        if hit.any():
+            first = np.minimum(first, np.where(hit, bad.argmax(axis=0), row))
+    if (first >= row).all():
+        return None
+    order = {st.block.name: k for k, st in enumerate(d.schedule)}
+    found = []
+    for b in np.flatnonzero(first < row):
+        r = int(first[b])
+        if not np.isnan(died_at[b]) and t_log[r] >= died_at[b]:
+            continue                          # after this variant's state diverged
+        culprits = [(order.get(name.rsplit(".", 1)[0], len(order)), name, L[r, b])
+                    for name, L in zip(d.logged, logs) if not np.isfinite(L[r, b]).all()]
+        _, name, value = min(culprits, key=lambda c: c[0])
+        found.append((r, b, name, value))
+    if not found:
+        return None
+    r, b, name, value = min(found)
+    block, port = name.rsplit(".", 1)
+    step = next((st for st in d.schedule if st.block.name == block), None)
+    flat = np.asarray(value, dtype=float).reshape(-1)
+    k = int(np.argmax(~np.isfinite(flat)))
+    where = f"[{k}]" if flat.size > 1 else ""
+    who = f"block '{block}' ({step.block.type_name})" if step is not None else f"'{block}'"
+    variant = f" (variant {b})" if B > 1 else ""
+    message = (f"simulation diverged at t = {t_log[r]:.6g}: {who} output '{port}'{where} = "
+               f"{flat[k]:.6g} is not finite{variant}; results up to that time are kept")
+    if B == 1:
+        return r + 1, "diverged", message, block
+    for r_b, b_b, _, _ in found:
+        died_at[b_b] = t_log[r_b]
+        alive[b_b] = False
+    if alive.any():
+        return None
+    return row, "diverged", message, block
 
 
 def _divergence_message(d: CompiledDiagram, x, bound, t) -> str:

@@ -295,3 +295,58 @@ def test_ctrl_c_in_a_real_process(tmp_path):
     np.testing.assert_allclose(arrays["int.y"][:, 0], 1 - np.cos(arrays["t"]), atol=1e-9)
     assert summary["t_reached"] == pytest.approx(arrays["t"][-1])
     assert not [f for f in os.listdir(outdir) if f.startswith(".tmp-")]
+
+
+# ------------------------------------------------------------------ non-finite block outputs
+OVERFLOW = """\
+blocks:
+  src: {type: Constant, value: [1.0e6, 1]}
+  ramp: {type: Integrator, shape: [2], initial: [0, 0]}
+  big: {type: Gain, gain: 1.0e303, shape: [2]}
+  after: {type: Gain, gain: 0.5, shape: [2]}
+connections:
+  - src.y -> ramp.u
+  - ramp.y -> big.u
+  - big.y -> after.u
+simulation: {t_final: 1, step: 0.01}
+metrics: {error: after.y}
+"""
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_overflowing_output_without_a_state_is_not_ok(tmp_path, capsys, backend):
+    # big.y = 1e303 * 1e6 t overflows once 1e309 t > 1.797e308, at t > 0.1797: the first
+    # recorded row with inf is t = 0.18; no state is involved (ramp stays far below the bound)
+    if backend == "compiled":
+        pytest.importorskip("numba")
+    outdir = tmp_path / "out"
+    code = cli.main(["run", write(tmp_path, OVERFLOW), "-o", str(outdir), "-q", "--no-plots",
+                     "--backend", backend])
+    assert code == 3
+    assert capsys.readouterr().err == (
+        "fwdstep: simulation diverged at t = 0.18: block 'big' (Gain) output 'y'[0] = inf is "
+        "not finite; results up to that time are kept\n")
+    arrays, summary = read_outputs(outdir)
+    assert summary["status"] == "diverged"
+    assert arrays["t"][-1] == pytest.approx(0.18) and np.isinf(arrays["big.y"][-1, 0])
+    assert np.isfinite(arrays["big.y"][:-1]).all()
+
+
+def test_overflowing_output_in_one_variant_of_a_batch(tmp_path):
+    # 1e150 * g: finite for g = 1, inf from t = 0 for g = 1e200; only that variant diverges
+    text = """\
+parameters:
+  g: 1
+blocks:
+  src: {type: Constant, value: [1.0e150, 1]}
+  big: {type: Gain, gain: g, shape: [2]}
+  after: {type: Gain, gain: 0.5, shape: [2]}
+connections:
+  - src.y -> big.u
+  - big.y -> after.u
+simulation: {t_final: 1, step: 0.01}
+metrics: {error: after.y}
+"""
+    from fwdstep.sweep import run_sweep
+    res = run_sweep(write(tmp_path, text), grid={"g": [1.0, 1.0e200]})
+    assert [(v.status, v.diverged_at) for v in res.variants] == [("ok", None), ("diverged", 0.0)]
