@@ -89,7 +89,8 @@ class AdaptationLaw(Block):
 
         self.declare_input("W", (n,) if self._vector else (n, p))
         self.declare_input("e", (n,))
-        self.declare_output("theta_hat", () if self._vector else (p,), feedthrough=())
+        self.declare_output("theta_hat", () if self._vector else (p,), feedthrough=(),
+                            label=r"$\hat\theta$")
         self.declare_state(p, t0)
         self.state_labels = ["theta_hat"] if self._vector else \
             [f"theta_hat[{k}]" for k in range(p)]

@@ -73,12 +73,14 @@ class MechanicalPlant(Block):
     """Base of the plants of eq. (1): state (q, qdot), input tau and optional tau_star, and the
     measurable outputs q, qdot (state only).  Not registered; subclasses add the dynamics."""
 
-    def declare_plant(self, n: int, q0, qdot0) -> None:
+    def declare_plant(self, n: int, q0, qdot0, unit: str = "rad") -> None:
         self._n = n
         self.declare_input("tau", (n,))
         self.declare_input("tau_star", (n,), optional=True)
-        self.declare_output("q", (n,), feedthrough=())
-        self.declare_output("qdot", (n,), feedthrough=())
+        joints = [f"joint {i + 1}" for i in range(n)]
+        self.declare_output("q", (n,), feedthrough=(), label="$q$", unit=unit, components=joints)
+        self.declare_output("qdot", (n,), feedthrough=(), label=r"$\dot q$", unit=f"{unit}/s",
+                            components=joints)
         self.declare_state(2 * n, np.concatenate([_vector_param(self, "q0", q0, n),
                                                   _vector_param(self, "qdot0", qdot0, n)]))
         self.state_labels = [f"q{i + 1}" for i in range(n)] + [f"qdot{i + 1}" for i in range(n)]

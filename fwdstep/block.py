@@ -99,6 +99,7 @@ class Block:
         self.inputs: dict[str, Port] = {}
         self.outputs: dict[str, Port] = {}
         self._feedthrough: dict[str, tuple | None] = {}
+        self.output_info: dict[str, dict] = {}    # port -> label/unit/components for figures
         self.n_states = 0
         self.x0 = np.zeros((1, 0))
         self.state_labels: list[str] | None = None
@@ -120,12 +121,18 @@ class Block:
         self.inputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
                                  if shape != () else (), optional)
 
-    def declare_output(self, name: str, shape=(), feedthrough=None) -> None:
+    def declare_output(self, name: str, shape=(), feedthrough=None, label: str | None = None,
+                       unit: str = "", components=None) -> None:
         """``feedthrough``: None = depends on every input; a tuple of input names otherwise
-        (``()`` = depends on state and time only)."""
+        (``()`` = depends on state and time only).  ``label`` (mathtext allowed), ``unit`` and
+        ``components`` (one name per element) are the defaults figures use for this output;
+        a diagram's ``log:``/``plots:`` entries override them."""
         self.outputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
                                   if shape != () else ())
         self._feedthrough[name] = None if feedthrough is None else tuple(feedthrough)
+        if label is not None or unit or components is not None:
+            self.output_info[name] = {"label": label, "unit": unit,
+                                      "components": list(components) if components else None}
 
     def declare_state(self, n: int, initial=None) -> None:
         n = int(n)

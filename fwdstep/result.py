@@ -39,10 +39,10 @@ class Result:
     def _key(self, name: str) -> str:
         if name in self._signals:
             return name
-        if self.diagram is not None:
-            real = self.diagram.resolve(name)
-            if real in self._signals:
-                return real
+        real = (self.diagram.resolve(name) if self.diagram is not None
+                else getattr(self, "aliases", {}).get(name, name))     # loaded: stored aliases
+        if real in self._signals:
+            return real
         raise KeyError(f"signal '{name}' was not recorded; recorded signals are: "
                        f"{', '.join(self._signals)}")
 
@@ -68,6 +68,8 @@ class Result:
         max |e| over the last ``tail`` fraction of the run (default 20%), RMS of |e| over
         the run, and max |e| over the run.
         """
+        if self.diagram is None and getattr(self, "stored", None):    # from load_result
+            return self.stored.get("metrics") or {}
         if self.diagram is None or "error" not in self.diagram.spec.metrics:
             return {} if self.batch == 1 else [{} for _ in range(self.batch)]
         e = self._signals[self._key(self.diagram.spec.metrics["error"])]
@@ -93,6 +95,7 @@ class Result:
             "wall_time_s": round(self.wall_time, 6),
             "metrics": _jsonable(self.metrics()),
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
+            **_figure_summary(self),
         }
 
     def save(self, outdir: str, force: bool = False) -> list:
@@ -109,6 +112,77 @@ class Result:
             atomic_write(paths[1], lambda fh: fh.write(summary))
             commit_result()
         return paths
+
+
+    # ------------------------------------------------------------------ notebooks
+    def plot(self, signals=None, figure: str | None = None, scale: str = "linear",
+             variants: list | None = None):
+        """matplotlib Figures, made without pyplot and without touching the backend.
+
+        ``r.plot()``: dict figure name -> Figure for the diagram's ``plots:``;
+        ``r.plot(figure="torque")``: that Figure; ``r.plot("e.y")`` or
+        ``r.plot(["adapt.theta_hat", "truth.y"], scale="log")``: one panel of those signals."""
+        from .plotting import panel_figure, result_figures
+        if signals is not None:
+            sigs = [signals] if isinstance(signals, str) else list(signals)
+            for s in sigs:
+                self._key(s)
+            return panel_figure(self, [(sigs, scale)], ", ".join(sigs), variants=variants)
+        if figure is not None:
+            return result_figures(self, variants, [figure])[figure]
+        return result_figures(self, variants)
+
+    def _repr_html_(self) -> str:
+        from .report import result_summary_html
+        return result_summary_html(self)
+
+
+def load_result(outdir: str) -> Result:
+    """A Result saved by ``fwdstep run`` (``result.npz`` + ``summary.json`` in ``outdir``).
+
+    The loaded Result has no compiled diagram (``diagram`` is None): signals, status, metrics,
+    labels and figures come from the files, so it plots and compares like a fresh one."""
+    from .errors import OutputError
+    npz, summ = os.path.join(outdir, RESULT_FILE), os.path.join(outdir, SUMMARY_FILE)
+    for path in (npz, summ):
+        if not os.path.isfile(path):
+            raise OutputError(f"{outdir} holds no saved run: {os.path.basename(path)} is missing "
+                              "(write one with fwdstep run DIAGRAM -o DIR)")
+    try:
+        with open(summ, encoding="utf-8") as fh:
+            summary = json.load(fh)
+        with np.load(npz, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, KeyError) as exc:
+        raise OutputError(f"cannot read the saved run in {outdir}: {exc}") from exc
+    batch = int(summary.get("batch") or 1)
+    t = arrays.pop("t")
+    signals = {k: (v[:, None] if batch == 1 else v) for k, v in arrays.items()}
+    r = Result(t, signals, status=summary.get("status", "ok"),
+               message=summary.get("message", ""), wall_time=summary.get("wall_time_s", 0.0),
+               steps=summary.get("steps", 0))
+    r.batch = batch
+    r.stored = summary
+    r.outdir = outdir
+    r.signal_labels = summary.get("signal_labels") or {}
+    r.figure_panels = {name: [(list(p["signals"]), p.get("scale", "linear")) for p in panels]
+                       for name, panels in (summary.get("figures") or {}).items()}
+    r.title = summary.get("title", "")
+    r.aliases = summary.get("aliases") or {}
+    return r
+
+
+def _figure_summary(result: Result) -> dict:
+    """Labels, figures and headline of a run, so a loaded result plots like a fresh one."""
+    if result.diagram is None:
+        return {}
+    from .plotting import figure_specs, headline, signal_labels
+    return {"title": headline(result.diagram.spec.description),
+            "figures": {name: [{"signals": list(sigs), "scale": scale} for sigs, scale in panels]
+                        for name, panels in figure_specs(result).items()},
+            "signal_labels": signal_labels(result),
+            "aliases": {k: v for k, v in result.diagram.spec.aliases.items()
+                        if v in result.names}}
 
 
 def error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> dict:

@@ -92,6 +92,7 @@ class DiagramSpec:
     lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
     plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
     input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
+    signal_info: dict = field(default_factory=dict)   # signal -> {label, unit, components}
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -456,6 +457,31 @@ class _Level:
                     self.connections.append(Connection(src, dst, file, line, text))
 
 
+SIGNAL_ENTRY_KEYS = ("signal", "label", "unit", "components")
+
+
+def signal_entry(entry, info: dict, where: str, file: str, line) -> Any:
+    """A ``log:``/``plots:`` entry -> its signal name; ``{signal: e.y, label: "Δq", unit: rad,
+    components: [joint 1, joint 2]}`` also records how figures name it in ``info``."""
+    if not isinstance(entry, dict):
+        return entry
+    extra = [k for k in entry if k not in SIGNAL_ENTRY_KEYS]
+    if extra or "signal" not in entry:
+        raise ConfigError(f"{where}: a signal mapping takes 'signal:' and optionally 'label:', "
+                          f"'unit:', 'components:'" + (f"; '{extra[0]}' is not one of them"
+                                                       if extra else ""), file=file, line=line)
+    comps = entry.get("components")
+    if comps is not None and not (isinstance(comps, list) and comps):
+        raise ConfigError(f"{where}: components of {entry['signal']} must be a list of names",
+                          file=file, line=line)
+    meta = {"label": None if entry.get("label") is None else str(entry["label"]),
+            "unit": str(entry.get("unit") or ""),
+            "components": None if comps is None else [str(c) for c in comps]}
+    old = info.setdefault(str(entry["signal"]), {"label": None, "unit": "", "components": None})
+    old.update({k: v for k, v in meta.items() if v})
+    return entry["signal"]
+
+
 def _read_document(path: str, cache: dict | None = None) -> LineDict:
     """Parse and check a diagram file.  With ``cache`` (a dict kept by the caller, e.g. a
     sweep building many variants), each file is parsed once per (path, mtime, size) and every
@@ -574,15 +600,17 @@ def load_spec(path: str, overrides: dict | None = None,
     level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache)
     level.expand()
     sim = _simulation(doc, ns, path)
-    lines = {}
+    lines, signal_info = {}, {}
     log = doc.get("log")
     if log is not None:
         if not isinstance(log, list):
             raise ConfigError("'log:' must be a list of block.port names", file=path,
                               line=_line(doc, "log"))
+        log = [signal_entry(name, signal_info, "log", path, _line(log, i))
+               for i, name in enumerate(log)]
         for i, name in enumerate(log):
-            parse_signal(name, "log", path, _line(log, i))
-            lines[name] = _line(log, i)
+            parse_signal(name, "log", path, _line(doc["log"], i))
+            lines[name] = _line(doc["log"], i)
     plots_raw = _mapping(doc.get("plots"), "plots", path, _line(doc, "plots"))
     plots, plot_scales = {}, {}
     for fig, panels in plots_raw.items():
@@ -597,7 +625,7 @@ def load_spec(path: str, overrides: dict | None = None,
         out, scales = [], []
         for panel in panels:
             scale = "linear"
-            if isinstance(panel, dict):     # {signals: [...], scale: log}
+            if isinstance(panel, dict) and "signal" not in panel:   # {signals: [...], scale: log}
                 extra = [k for k in panel if k not in ("signals", "scale")]
                 if extra or "signals" not in panel or panel.get("scale", "linear") not in (
                         "linear", "log"):
@@ -606,6 +634,7 @@ def load_spec(path: str, overrides: dict | None = None,
                 scale = panel.get("scale", "linear")
                 panel = panel["signals"]
             sigs = panel if isinstance(panel, list) else [panel]
+            sigs = [signal_entry(s, signal_info, f"plot '{fig}'", path, fline) for s in sigs]
             scales.append(scale)
             for s in sigs:
                 parse_signal(s, f"plot '{fig}'", path, fline)
@@ -633,4 +662,4 @@ def load_spec(path: str, overrides: dict | None = None,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
-                       input_ports=level.input_ports)
+                       input_ports=level.input_ports, signal_info=signal_info)
