@@ -20,6 +20,20 @@ and implements two pure functions on arrays that all carry a leading batch axis 
 
 Neither may mutate ``self``, ``x`` or ``u``.  Per-run data (time, state, logs) live in the
 simulator, never in the block, so a compiled diagram can be run any number of times.
+
+One definition, two executions (docs/writing-blocks.md).  A block states its numerics once,
+as module-level *kernels* declared in ``setup`` with ``set_kernels``::
+
+    output_kernel(t, x, u_1, ..., u_k, p_1, ..., p_m, s_1, ..., s_r) -> (y_1, ..., y_j)
+    derivative_kernel(t, x, u_1, ..., u_k, p_1, ..., p_m, s_1, ..., s_r) -> dx
+
+where ``p_i`` are the arrays ``self.p.<name>`` named in ``params`` (leading batch axis) and
+``s_i`` the plain numbers/flags in ``static``.  Kernels are pure functions written in the
+subset of NumPy that numba compiles (plus ``math`` and the batched helpers of
+``fwdstep.kernelops``).  The NumPy path calls them as they are (``Block.output`` /
+``Block.derivative`` below do); the compiled backend jits the very same functions and calls
+them from one generated loop.  A block that cannot run compiled (it calls a library numba
+cannot compile) says why in ``cannot_compile``; the compiled backend then refuses it by name.
 """
 from __future__ import annotations
 
@@ -39,6 +53,8 @@ MAX_BLOCK_STATES = 200_000
 MAX_SIGNAL_SIZE = 1_000_000
 
 REQUIRED = object()
+_NO_TIMES = np.zeros(0)
+_NO_TIMES.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -73,6 +89,15 @@ class Port:
         return int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
 
 
+@dataclass(frozen=True)
+class Kernels:
+    """A block's numerics, declared with ``Block.set_kernels``."""
+    output: Any
+    derivative: Any
+    params: tuple
+    static: tuple
+
+
 def shape_str(shape: tuple) -> str:
     if shape == ():
         return "scalar ()"
@@ -93,6 +118,11 @@ class Block:
     stacked_params: ClassVar[tuple] = ()
     #: True when ``initial_state(t0, u)`` must be called with the inputs at t0
     init_from_inputs: ClassVar[bool] = False
+    #: non-empty: why this block cannot run on the compiled backend (which then refuses the
+    #: diagram with this reason and the block's name); empty: it must declare kernels
+    cannot_compile: ClassVar[str] = ""
+    #: set by ``set_kernels``: (output kernel, derivative kernel, param names, static values)
+    kernels: "Kernels | None" = None
 
     def __init__(self, name: str, **params: Any):
         self.name = name
@@ -161,15 +191,67 @@ class Block:
                                  f"limit {maximum}", block=self.name)
         return value
 
+    def set_kernels(self, output=None, derivative=None, params: tuple = (),
+                    static: tuple = ()) -> None:
+        """Declare the block's numerics: module-level kernel functions (see the module
+        docstring and docs/writing-blocks.md).  ``params`` names arrays of ``self.p`` passed
+        after the inputs, in this order; ``static`` are plain ints/floats/bools passed last
+        (fixed by the structure, e.g. a size or a variant flag).  May be called again in
+        ``finalize`` to pick another kernel for a batch."""
+        for name in params:
+            if not hasattr(self.p, name):
+                raise ValueError(f"{type(self).__name__}.set_kernels: self.p has no {name!r} "
+                                 "(call set_param first)")
+        for value in static:
+            if not isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
+                raise ValueError(f"{type(self).__name__}.set_kernels: static values must be "
+                                 f"numbers or flags, got {type(value).__name__}")
+        self.kernels = Kernels(output, derivative, tuple(params),
+                               tuple(v.item() if isinstance(v, np.generic) else v
+                                     for v in static))
+
+    def kernel_args(self) -> tuple:
+        """The arguments after the inputs: the named ``p`` arrays, then the static values."""
+        k = self.kernels
+        return tuple(getattr(self.p, n) for n in k.params) + k.static
+
     def feedthrough(self, output: str) -> tuple:
         ft = self._feedthrough[output]
         return tuple(self.inputs) if ft is None else ft
 
     # ------------------------------------------------------------------ run-time API
     def output(self, t: float, x: np.ndarray, u: tuple) -> tuple:
-        return ()
+        k = self.kernels
+        if k is None or k.output is None:
+            return ()
+        return k.output(t, x, *u, *self.kernel_args())
 
     def derivative(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
+        k = self.kernels
+        if k is None or k.derivative is None:
+            raise NotImplementedError(f"block type {type(self).__name__} declares states but "
+                                      "no derivative kernel")
+        return k.derivative(t, x, *u, *self.kernel_args())
+
+    # ------------------------------------------------------------------ time events
+    #: True for blocks with discrete states: ``update`` is applied at their event times
+    discrete: ClassVar[bool] = False
+
+    def discontinuities(self, t_final: float) -> np.ndarray:
+        """Times in [0, t_final] at which this block's outputs or derivatives jump (a Step's
+        time, a pulse's edges, sample instants), as a 1-D float array, the union over the
+        batch; default: none.  The simulator ends a step exactly at each such time; every
+        stage of a step that ends at time T is evaluated at a time < T (left limit), every
+        stage of the next step at a time >= T (right limit).  A block's output must
+        therefore be right-continuous: use ``t >= T``, never ``t > T``.  For many regular
+        instants use ``fwdstep.events.sample_instants``.  docs/discrete-time.md."""
+        return _NO_TIMES
+
+    def update(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
+        """Discrete blocks (``discrete = True``) only: the block's new state ``(B, n_states)``
+        at one of its ``discontinuities`` times, from its state just before (``x``) and its
+        inputs at t.  Applied between steps, never inside the Runge-Kutta stages; the
+        block's ``derivative`` must be zero for its discrete states."""
         raise NotImplementedError
 
     def initial_state(self, t0: float, u: tuple) -> np.ndarray:

@@ -1,0 +1,44 @@
+"""Batched helpers for block kernels: the operations numba does not compile on arrays with a
+leading batch axis (matrix products and solves over a batch, cumulative sums along an axis,
+per-variant gathers).
+
+A kernel calls them as ``ko.bmatvec(M, v)`` (``from fwdstep import kernelops as ko``).  On the
+NumPy path they are these vectorised NumPy functions; in compiled code the backend binds
+the loops of ``fwdstep.compiled_ops`` (same names, same results) in their place.  The batch
+axis broadcasts: an operand of leading length 1 is shared by every variant.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def bvecmat(v, M):
+    """y[b] = v[b] @ M[b]: v (B, n), M (B, n, m) -> (B, m)."""
+    return np.matmul(v[:, None, :], M)[:, 0, :]
+
+
+def bmatvec(M, v):
+    """y[b] = M[b] @ v[b]: M (B, n, m), v (B, m) -> (B, n)."""
+    return np.matmul(M, v[:, :, None])[:, :, 0]
+
+
+def bmatmul(A, B):
+    """C[b] = A[b] @ B[b]: A (B, n, k), B (B, k, m) -> (B, n, m)."""
+    return np.matmul(A, B)
+
+
+def bsolve(M, v):
+    """x[b] = M[b]^-1 v[b]: M (B, n, n), v (B, n) -> (B, n)."""
+    return np.linalg.solve(M, v[:, :, None])[:, :, 0]
+
+
+def cumsum1(a):
+    """Cumulative sum along axis 1 of a 2-d array (real or complex)."""
+    return np.cumsum(a, axis=1)
+
+
+def take1(u, index):
+    """y[b, j] = u[b, index[b, j]]: u (B, n), index (B, m) of whole numbers stored as floats."""
+    B = max(u.shape[0], index.shape[0])
+    idx = np.broadcast_to(index.astype(np.intp), (B, index.shape[1]))
+    return np.take_along_axis(np.broadcast_to(u, (B, u.shape[1])), idx, axis=1)
