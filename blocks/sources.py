@@ -104,6 +104,10 @@ class Step(Block):
         p = self.p
         return (np.where(t >= p.time, p.after, p.before),)
 
+    def discontinuities(self, t_final):
+        p = self.p
+        return np.unique(p.time[np.broadcast_to(p.before != p.after, p.time.shape)])
+
 
 class _SinusoidSum(Block):
     """Shared machinery: y_i = offset_i + sum_k A_ik sin(w_ik t + phi_ik), and derivatives.

@@ -38,7 +38,10 @@ class Program:
 
     ``first(t)`` / ``first_record(t, row)``: stage 1 at (t, xn) (the latter also records the
     logged signals in row ``row``); ``rest(t)``: stages 2..s and the update of ``xn``;
-    ``final(t, row)``: outputs at (t, xn) and a record (the final time)."""
+    ``final(t, row)``: outputs at (t, xn) and a record (the final time).
+    ``first_ts``, ``first_record_ts``, ``final_ts``: the same with the stage time ``ts``
+    given apart from the recorded time ``t``; ``rest_h(t, h, lo, hi)``: stages 2..s of a
+    step of size h with stage times clamped to [lo, hi] (steps at discontinuities)."""
     xn: np.ndarray
     logs: list
     t_log: np.ndarray
@@ -48,6 +51,10 @@ class Program:
     final: object
     plan: FusionPlan | None
     source: str
+    first_ts: object = None
+    first_record_ts: object = None
+    final_ts: object = None
+    rest_h: object = None
 
 
 class _Source:
@@ -216,12 +223,41 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
         rest.append("add(xn, T, out=xn)")
     function("def rest(t):", rest)
     function("def final(t, row):", stage1 + record)
+    # the same stage 1 at an explicit stage time, and a step of any size h whose stage
+    # times are clamped to [lo, hi]: for steps that start or end at a discontinuity
+    # (fwdstep.events); the steps above are untouched, so runs without events stay the same
+    stage1_ts = stage1[1:]
+    function("def first_ts(ts):", stage1_ts + derivative_pass(xn, 0))
+    function("def first_record_ts(t, ts, row):", stage1_ts + record + derivative_pass(xn, 0))
+    function("def final_ts(t, ts, row):", stage1_ts + record)
+    rest_h = []
+    for s, (c, row_a) in enumerate(zip(tab.c[1:], tab.a[1:]), start=1):
+        coeffs = [(j, a) for j, a in enumerate(row_a) if a != 0.0]
+        if coeffs:
+            j, a = coeffs[0]
+            rest_h.append(f"multiply(K{j}, h * {src.const('a', a)}, out=X)")
+            rest_h.append("add(X, xn, out=X)")
+        else:
+            rest_h.append("X[...] = xn")
+        for j, a in coeffs[1:]:
+            rest_h.append(f"multiply(K{j}, h * {src.const('a', a)}, out=T)")
+            rest_h.append("add(X, T, out=X)")
+        rest_h.append(f"ts = min(max(t + {src.const('c', c)} * h, lo), hi)")
+        rest_h.extend(stage)
+        rest_h.extend(derivative_pass(X, s))
+    for j, b in enumerate(tab.b):
+        if b != 0.0:
+            rest_h.append(f"multiply(K{j}, h * {src.const('b', b)}, out=T)")
+            rest_h.append("add(xn, T, out=xn)")
+    function("def rest_h(t, h, lo, hi):", rest_h)
 
     source = "\n".join(src.lines)
     exec(compile(source, f"<fwdstep program for {d.file}>", "exec"), ns)  # noqa: S102
     return Program(xn=xn, logs=logs, t_log=t_log, first=ns["first"],
                    first_record=ns["first_record"], rest=ns["rest"], final=ns["final"],
-                   plan=plan, source=source)
+                   plan=plan, source=source, first_ts=ns["first_ts"],
+                   first_record_ts=ns["first_record_ts"], final_ts=ns["final_ts"],
+                   rest_h=ns["rest_h"])
 
 
 class _GroupBuffers:

@@ -31,7 +31,8 @@ from .compiler import CompiledDiagram
 from .errors import BlockRuntimeError, ConfigError, DivergenceError, SimulationError
 from .program import build_program
 from .result import Result
-from .solvers import TABLEAUX, step_plan
+from .events import apply_updates, plan_events
+from .solvers import IVP_METHODS, TABLEAUX, step_plan
 
 
 class SimulationInterrupted(SimulationError):
@@ -145,12 +146,22 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``fwdstep.backend_numba``; single runs only).
     """
     cfg = d.spec.simulation
+    if cfg.solver in IVP_METHODS:
+        if (backend or cfg.backend) == "compiled":
+            raise ConfigError(f"solver '{cfg.solver}' runs through scipy's solve_ivp; it has no "
+                              "compiled backend (use backend numpy)", file=d.file)
+        from .ivp import simulate_ivp
+        return simulate_ivp(d, progress, x0)
     if (backend or cfg.backend) == "compiled":
         return _simulate_compiled(d, progress, x0)
     if (backend or cfg.backend) != "numpy":
         raise ConfigError(f"unknown backend '{backend}'; backends are: numpy, compiled")
     h = cfg.step
     n_steps = cfg.n_steps
+    events = plan_events(d, h, n_steps)
+    special = events.steps if events is not None else {}
+    if events is not None and events.discrete:
+        _, ev_outputs, ev_sig = _make_evaluator(d)
     every = cfg.log_every
     B, N = d.batch, d.n_states
     bound = cfg.bound
@@ -176,12 +187,24 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
             for n in range(n_steps):
                 t = n * h
-                if n % every == 0:
-                    first_record(t, row)
-                    row += 1
+                if n in special:              # a step that touches a discontinuity
+                    for i, sub in enumerate(special[n]):
+                        ts = max(sub.a, sub.lo)
+                        if sub.updates:
+                            apply_updates(d, sub.updates, ts, x, ev_outputs, ev_sig)
+                        if i == 0 and n % every == 0:
+                            prog.first_record_ts(t, ts, row)
+                            row += 1
+                        else:
+                            prog.first_ts(ts)
+                        prog.rest_h(sub.a, sub.b - sub.a, sub.lo, sub.hi)
                 else:
-                    first(t)
-                rest(t)
+                    if n % every == 0:
+                        first_record(t, row)
+                        row += 1
+                    else:
+                        first(t)
+                    rest(t)
                 if single:
                     if np.abs(x, out=absx).max() <= bound:
                         pass
@@ -209,11 +232,19 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                         next_report = now + 1.0
             else:
                 t = n_steps * h
-                prog.final(t, row)
+                end = events.final if events is not None else None
+                if end is None:
+                    prog.final(t, row)
+                else:                         # an event at t_final: its right limit
+                    if end.updates:
+                        apply_updates(d, end.updates, max(t, end.hi), x, ev_outputs, ev_sig)
+                    prog.final_ts(t, max(t, end.hi), row)
                 row += 1
         except KeyboardInterrupt:
             status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
+        except SimulationError as exc:    # a discrete algebraic loop: already says where
+            status, message, error = "error", str(exc), exc
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
             error = _locate_failure(d, t, x, exc)
             error.__cause__ = exc
@@ -230,6 +261,12 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
         raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
                           "backend 'numpy')", file=d.file) from None
     cfg = d.spec.simulation
+    timed = next((st.block for st in d.schedule if len(st.block.discontinuities(cfg.t_final))),
+                 None)
+    if timed is not None:
+        raise ConfigError(f"backend 'compiled' does not yet handle discontinuity times or "
+                          f"discrete blocks (block '{timed.name}', {timed.type_name}); use "
+                          "backend numpy", file=d.file, block=timed.name)
     h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
     wall0 = _time.perf_counter()
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)

@@ -41,6 +41,13 @@ TABLEAUX = {
 }
 
 
+#: adaptive methods of scipy.integrate.solve_ivp (``fwdstep.ivp``): name -> scipy's name.
+#: dop853: explicit Runge-Kutta of order 8 (Dormand-Prince), for checking a fixed-step run
+#: against a tight tolerance; radau: implicit Runge-Kutta (Radau IIA) of order 5, for stiff
+#: diagrams; lsoda: switches between Adams and BDF (ODEPACK) as stiffness comes and goes.
+IVP_METHODS = {"dop853": "DOP853", "radau": "Radau", "lsoda": "LSODA"}
+
+
 def step_plan(tableau: Tableau, h: float):
     """Precomputed, zero-free coefficient lists for one step of size h:
     ``stages[i] = (c_i*h, [(j, h*a_ij), ...])`` for i >= 1, and ``[(j, h*b_j), ...]``."""
