@@ -244,6 +244,8 @@ class URDFArm(MechanicalPlant):
     ``parameters``, so a diagram can plot theta_hat against it.  ``tau_star`` is optional:
     unconnected, it is zero.  State order: q (n), then qdot (n).  NumPy path only (pinocchio).
 
+    Equation: (1), qddot = H^-1 (tau + tau_star - tau_f - C qdot - g) by pinocchio.aba.
+
     Ports:
         | port     | direction | shape | feedthrough |
         | tau      | in        | (n,)  | -           |
@@ -273,6 +275,7 @@ class URDFArm(MechanicalPlant):
     }
     example = {"robot": "ur5", "q0": [0.1, -1.0, 1.2, 0.0, 0.5, 0.0], "damping": 0.1}
     summary = classmethod(_summary_with_hint)
+    cannot_compile = "it calls pinocchio, which numba cannot compile"
 
     def setup(self, robot, urdf, locked_joints, gravity, parameters, damping, coulomb,
               coulomb_velocity, q0, qdot0):
@@ -281,6 +284,7 @@ class URDFArm(MechanicalPlant):
         self.model, self._data, _, _ = load_model(self, robot, urdf, locked_joints, gravity)
         n = self.model.nv
         self.declare_plant(n, q0, qdot0)
+        self.kernels = None          # output/derivative below (pinocchio), not the base's
         self.state_labels = [f"q_{j}" for j in self.model.names[1:]] + \
                             [f"qdot_{j}" for j in self.model.names[1:]]
         theta, _ = _parameter_form(self, self.model, robot, urdf, locked_joints, gravity,
@@ -342,6 +346,8 @@ class URDFRegressor(Block):
     columns and the plant's ``theta`` becomes the base parameters beta with Y_base beta = Y theta.
     NumPy path only (pinocchio).
 
+    Equation: Property 3, Y theta = H zetad + C zeta + g (docs/urdf-regressor.md, eq. (R)).
+
     Ports:
         | port  | direction | shape  | feedthrough          |
         | q     | in        | (n,)   | -                    |
@@ -358,6 +364,7 @@ class URDFRegressor(Block):
     params = _robot_params()
     example = {"robot": "ur5"}
     summary = classmethod(_summary_with_hint)
+    cannot_compile = "it calls pinocchio, which numba cannot compile"
 
     def setup(self, robot, urdf, locked_joints, gravity, parameters):
         self._pin = _pinocchio(self.name, self.type_name)
