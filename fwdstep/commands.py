@@ -70,7 +70,8 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
         d = load_diagram(path, _overrides(sets))
         check_outdir(outdir, force)
     except (DiagramError, OutputError) as exc:
-        _err(str(exc))
+        for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
+            _err(str(each))
         return EXIT_INPUT
     code = EXIT_OK
     progress = None if quiet else _progress

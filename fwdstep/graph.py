@@ -24,80 +24,112 @@ class Structure:
     graph: nx.DiGraph
 
 
-def instantiate(spec: DiagramSpec) -> list:
+def instantiate(spec: DiagramSpec, errors: list | None = None) -> list:
+    """The blocks of ``spec``.  With ``errors`` (a list), a block that refuses its parameters
+    is recorded there and left out, so every such mistake can be reported at once."""
     blocks = []
     for entry in spec.blocks:
         try:
-            blk = entry.cls(entry.name, **entry.params)
+            blocks.append(_instantiate_one(entry))
         except DiagramError as exc:
-            line = entry.line
-            # point at the parameter's own line when the message names it
-            for key, kline in entry.key_lines.items():
-                if f"parameter '{key}'" in exc.message:
-                    line = kline
-                    break
-            exc.block = exc.block or entry.name
-            raise exc.located(entry.file, line) from None
-        except (ValueError, TypeError, ArithmeticError, IndexError, KeyError,
-                MemoryError) as exc:
-            # a block's own checks missed this; still one sentence, chained to the cause
-            raise ParameterError(f"block '{entry.name}' ({entry.type_name}) rejected its "
-                                 f"parameters: {type(exc).__name__}: {exc}"[:400],
-                                 file=entry.file, line=entry.line, block=entry.name) from exc
-        blocks.append(blk)
+            if errors is None:
+                raise
+            errors.append(exc)
     return blocks
 
 
+def _instantiate_one(entry):
+    try:
+        blk = entry.cls(entry.name, **entry.params)
+    except DiagramError as exc:
+        line = entry.line
+        # point at the parameter's own line when the message names it
+        for key, kline in entry.key_lines.items():
+            if f"parameter '{key}'" in exc.message:
+                line = kline
+                break
+        exc.block = exc.block or entry.name
+        raise exc.located(entry.file, line) from None
+    except (ValueError, TypeError, ArithmeticError, IndexError, KeyError,
+            MemoryError) as exc:
+        # a block's own checks missed this; still one sentence, chained to the cause
+        raise ParameterError(f"block '{entry.name}' ({entry.type_name}) rejected its "
+                             f"parameters: {type(exc).__name__}: {exc}"[:400],
+                             file=entry.file, line=entry.line, block=entry.name) from exc
+    return blk
+
+
+def _check_connection(conn, by_name: dict, drivers: dict, where: dict) -> None:
+    (sb, sp), (db, dp) = conn.src, conn.dst
+    for blk_name, port, kind in ((sb, sp, "output"), (db, dp, "input")):
+        if blk_name not in by_name:
+            raise WiringError(f"connection '{conn.text}' names block '{blk_name}', which does "
+                              "not exist", file=conn.file, line=conn.line, block=blk_name)
+        blk = by_name[blk_name]
+        ports = blk.outputs if kind == "output" else blk.inputs
+        if port not in ports:
+            other = blk.inputs if kind == "output" else blk.outputs
+            note = f" ('{port}' is an {'input' if kind == 'output' else 'output'})" \
+                if port in other else ""
+            raise WiringError(f"block '{blk_name}' has no {kind} port '{port}'{note}; "
+                              f"{kind} ports are: {', '.join(ports) or '(none)'}",
+                              file=conn.file, line=conn.line, block=blk_name, port=port)
+    if (db, dp) in drivers:
+        first = where[(db, dp)]
+        raise WiringError(f"input {db}.{dp} is driven twice: by {drivers[(db, dp)][0]}."
+                          f"{drivers[(db, dp)][1]} (line {first}) and by {sb}.{sp}",
+                          file=conn.file, line=conn.line, block=db, port=dp)
+    s_shape = by_name[sb].outputs[sp].shape
+    d_shape = by_name[db].inputs[dp].shape
+    if s_shape != d_shape:
+        raise ShapeError(f"connection {sb}.{sp} -> {db}.{dp}: shapes differ: {sb}.{sp} is "
+                         f"{shape_str(s_shape)}, {db}.{dp} is {shape_str(d_shape)}",
+                         file=conn.file, line=conn.line, block=db, port=dp)
+
+
 def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
-    blocks = instantiate(spec) if blocks is None else blocks
+    errors: list = []
+    blocks = instantiate(spec, errors) if blocks is None else blocks
     by_name = {b.name: b for b in blocks}
     entry_of = {e.name: e for e in spec.blocks}
+    failed = {e.name for e in spec.blocks} - set(by_name)     # reported by instantiate
     drivers: dict = {}
     where: dict = {}
     where_file: dict = {}
     for conn in spec.connections:
+        if conn.src[0] in failed or conn.dst[0] in failed:
+            continue
+        try:
+            _check_connection(conn, by_name, drivers, where)
+        except DiagramError as exc:
+            errors.append(exc)
+            failed.add(conn.dst[0])     # its unconnected inputs would only repeat this mistake
+            continue
         (sb, sp), (db, dp) = conn.src, conn.dst
-        for blk_name, port, kind in ((sb, sp, "output"), (db, dp, "input")):
-            if blk_name not in by_name:
-                raise WiringError(f"connection '{conn.text}' names block '{blk_name}', which does "
-                                  "not exist", file=conn.file, line=conn.line, block=blk_name)
-            blk = by_name[blk_name]
-            ports = blk.outputs if kind == "output" else blk.inputs
-            if port not in ports:
-                other = blk.inputs if kind == "output" else blk.outputs
-                note = f" ('{port}' is an {'input' if kind == 'output' else 'output'})" \
-                    if port in other else ""
-                raise WiringError(f"block '{blk_name}' has no {kind} port '{port}'{note}; "
-                                  f"{kind} ports are: {', '.join(ports) or '(none)'}",
-                                  file=conn.file, line=conn.line, block=blk_name, port=port)
-        if (db, dp) in drivers:
-            first = where[(db, dp)]
-            raise WiringError(f"input {db}.{dp} is driven twice: by {drivers[(db, dp)][0]}."
-                              f"{drivers[(db, dp)][1]} (line {first}) and by {sb}.{sp}",
-                              file=conn.file, line=conn.line, block=db, port=dp)
-        s_shape = by_name[sb].outputs[sp].shape
-        d_shape = by_name[db].inputs[dp].shape
-        if s_shape != d_shape:
-            raise ShapeError(f"connection {sb}.{sp} -> {db}.{dp}: shapes differ: {sb}.{sp} is "
-                             f"{shape_str(s_shape)}, {db}.{dp} is {shape_str(d_shape)}",
-                             file=conn.file, line=conn.line, block=db, port=dp)
         drivers[(db, dp)] = (sb, sp)
         where[(db, dp)] = conn.line
         where_file[(db, dp)] = conn.file
     for blk in blocks:
         for port in blk.inputs.values():
             if (blk.name, port.name) not in drivers and not port.optional:
+                if blk.name in failed:
+                    continue        # a connection into this block was wrong: reported already
                 outer = spec.input_ports.get((blk.name, port.name))
                 if outer is not None:     # name the subsystem's port, where the user can fix it
                     label, ofile, oline = outer
-                    raise WiringError(f"subsystem input port '{label}' is not connected (it "
-                                      f"drives {blk.name}.{port.name})", file=ofile, line=oline,
-                                      block=label.rsplit(".", 1)[0], port=label.rsplit(".", 1)[1])
+                    errors.append(WiringError(
+                        f"subsystem input port '{label}' is not connected (it drives "
+                        f"{blk.name}.{port.name})", file=ofile, line=oline,
+                        block=label.rsplit(".", 1)[0], port=label.rsplit(".", 1)[1]))
+                    continue
                 entry = entry_of.get(blk.name)
-                raise WiringError(f"block '{blk.name}' input port '{port.name}' is not connected",
-                                  file=entry.file if entry else spec.file,
-                                  line=entry.line if entry else None, block=blk.name,
-                                  port=port.name)
+                errors.append(WiringError(
+                    f"block '{blk.name}' input port '{port.name}' is not connected",
+                    file=entry.file if entry else spec.file,
+                    line=entry.line if entry else None, block=blk.name, port=port.name))
+    if errors:
+        errors[0].more = errors[1:]
+        raise errors[0]
 
     g = nx.DiGraph()
     for blk in blocks:

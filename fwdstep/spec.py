@@ -21,6 +21,7 @@ import copy
 import math
 import os
 import re
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +31,7 @@ from .errors import (ConfigError, DiagramError, ExpressionError, ParameterError,
                      YamlError)
 from .expressions import MAX_ARRAY_SIZE, evaluate, names_in
 from .registry import lookup
+from .search import SearchPath, check_regular_file
 from .yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
 
 TOP_LEVEL_KEYS = ("description", "parameters", "blocks", "connections", "ports", "simulation",
@@ -38,8 +40,11 @@ SIMULATION_KEYS = ("t_final", "step", "solver", "log_every", "bound", "backend")
 SOLVER_NAMES = ("euler", "heun", "rk4")
 MAX_STEPS = 50_000_000
 MAX_SUBSYSTEM_DEPTH = 16
+MAX_BLOCKS = 10_000                     # blocks after subsystem expansion
+MAX_PARAMETER_NUMBERS = 20_000_000      # numbers held by all evaluated parameters (160 MiB)
+MAX_PARAMETER_SECONDS = 30              # time spent evaluating parameters
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-_SIM_OVERRIDE = re.compile(r"^simulation\.[A-Za-z_]+$")
+_PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+$")   # plant.arm.q0
 _FIGURE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]{0,63}$")
 
 
@@ -71,6 +76,7 @@ class SimulationConfig:
     log_every: int = 1
     bound: float = 1e8
     backend: str = "numpy"
+    defaulted: tuple = ()       # settings the diagram did not give (shown in the run's header)
 
     @property
     def n_steps(self) -> int:
@@ -96,6 +102,42 @@ class DiagramSpec:
 
 
 # ---------------------------------------------------------------------------- helpers
+class Budget:
+    """Limits on what loading one diagram may cost, checked as it goes (before building more):
+    blocks after subsystem expansion, numbers held by evaluated parameters, and the time spent
+    evaluating them.  Errors raised here are marked ``fatal``: validation stops at once."""
+
+    def __init__(self):
+        self.blocks = 0
+        self.numbers = 0
+        self.start = time.monotonic()
+
+    def _fail(self, exc: DiagramError) -> DiagramError:
+        exc.fatal = True
+        return exc
+
+    def add_block(self, name: str, file: str, line) -> None:
+        self.blocks += 1
+        if self.blocks > MAX_BLOCKS:
+            raise self._fail(ConfigError(
+                f"the diagram has more than {MAX_BLOCKS} blocks after subsystem expansion "
+                f"(reached at '{name}'); refused before building more", file=file, line=line,
+                block=name))
+
+    def charge(self, value, what: str) -> None:
+        if isinstance(value, (np.ndarray, float, int)):
+            self.numbers += int(np.size(value))
+        if self.numbers > MAX_PARAMETER_NUMBERS:
+            raise self._fail(ExpressionError(
+                f"{what}: the diagram's evaluated parameters would hold {self.numbers} numbers; "
+                f"the limit is {MAX_PARAMETER_NUMBERS} ({MAX_PARAMETER_NUMBERS * 8 >> 20} MiB)"))
+        spent = time.monotonic() - self.start
+        if spent > MAX_PARAMETER_SECONDS:
+            raise self._fail(ExpressionError(
+                f"{what}: evaluating the diagram's parameters has taken {spent:.0f} s; the limit "
+                f"is {MAX_PARAMETER_SECONDS} s"))
+
+
 def kind_of(value) -> str:
     """What a YAML value is, in the words of the diagram format ('a list', 'a number')."""
     if value is None:
@@ -172,9 +214,9 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"--set '{text}' must have the form NAME=VALUE")
     name, raw = text.split("=", 1)
     name = name.strip()
-    if not _NAME.match(name) and not _SIM_OVERRIDE.match(name):
-        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name (or "
-                          "simulation.SETTING)")
+    if not _NAME.match(name) and not _PATH.match(name):
+        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name, "
+                          "simulation.SETTING, log, BLOCK.PARAMETER or SUBSYSTEM.BLOCK.PARAMETER")
     try:
         value = parse_yaml_text(raw) if raw.strip() else None
     except YamlError:
@@ -185,7 +227,8 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 def resolve_parameters(raw: LineDict, overrides: dict, file: str,
-                       preset: dict | None = None, line: int | None = None) -> dict:
+                       preset: dict | None = None, line: int | None = None,
+                       budget: "Budget | None" = None) -> dict:
     """Evaluate the ``parameters:`` section (any order; references resolved by dependency).
 
     ``overrides`` replace raw values (``--set``); ``preset`` supplies already-evaluated values
@@ -208,26 +251,35 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
         values[name] = value
     namespace: dict = dict(preset or {})
     pending = {k: v for k, v in values.items() if k not in namespace}
-    while pending:
-        progressed = False
-        for name in list(pending):
-            value = pending[name]
-            deps = set()
-            for text in _strings_in(value):
-                deps |= names_in(text)
-            if deps & set(pending) - {name}:
-                continue
-            try:
-                namespace[name] = evaluate_value(value, namespace, f"parameter '{name}'")
-            except DiagramError as exc:
-                raise exc.located(file, _line(raw, name)) from None
-            del pending[name]
-            progressed = True
-        if not progressed:
-            cyc = ", ".join(pending)
-            first = next(iter(pending))
-            raise ExpressionError(f"parameters {cyc} refer to each other in a cycle", file=file,
-                                  line=_line(raw, first))
+    # dependency order in linear time: each expression is parsed once, then Kahn's algorithm
+    needs: dict = {}
+    users: dict = {name: [] for name in pending}
+    for name, value in pending.items():
+        deps = set()
+        for text in _strings_in(value):
+            deps |= names_in(text)
+        needs[name] = {d for d in deps if d in pending and d != name}
+        for d in needs[name]:
+            users[d].append(name)
+    ready = [name for name in pending if not needs[name]]
+    done = 0
+    while done < len(ready):
+        name = ready[done]
+        try:
+            namespace[name] = evaluate_value(pending[name], namespace, f"parameter '{name}'")
+            if budget is not None:
+                budget.charge(namespace[name], f"parameter '{name}'")
+        except DiagramError as exc:
+            raise exc.located(file, _line(raw, name)) from None
+        done += 1
+        for user in users[name]:
+            needs[user].discard(name)
+            if not needs[user]:
+                ready.append(user)
+    if len(ready) < len(pending):
+        left = [name for name in pending if name not in namespace]
+        raise ExpressionError(f"parameters {', '.join(left)} refer to each other in a cycle",
+                              file=file, line=_line(raw, left[0]))
     return namespace
 
 
@@ -264,16 +316,41 @@ def _parse_connection(text: Any, file: str, line: int | None):
 
 
 # ---------------------------------------------------------------------------- expansion
+class _Failed(Exception):
+    """A block or subsystem that was already reported: connections to it are skipped."""
+
+
+def _suggest(name: str, names, what: str) -> str:
+    import difflib
+    names = list(names)
+    close = difflib.get_close_matches(name, names, n=1)
+    if close:
+        return f"did you mean '{close[0]}'?"
+    return f"{what} are: {', '.join(names) or '(none)'}"
+
+
 class _Level:
-    """One diagram file being expanded (the top level or a subsystem)."""
+    """One diagram file being expanded (the top level or a subsystem).
+
+    ``sets`` holds the ``--set`` paths below this level, ``{("blk", "param"): value,
+    ("sub", "param"): value, ("sub", "blk", "param"): value, ...}``.  ``errors`` is shared by
+    all levels of one load: a bad block or connection is recorded and expansion goes on, so
+    ``fwdstep validate`` can report every mistake at once."""
 
     def __init__(self, doc: LineDict, file: str, namespace: dict, prefix: str, stack: tuple,
-                 cache: dict | None = None):
+                 cache: dict | None = None, sets: dict | None = None,
+                 errors: list | None = None, budget: Budget | None = None,
+                 search: SearchPath | None = None):
         self.doc, self.file, self.ns, self.prefix, self.stack = doc, file, namespace, prefix, stack
         self.cache = cache
+        self.sets = sets or {}
+        self.errors = [] if errors is None else errors
+        self.budget = budget or Budget()
+        self.search = search or SearchPath(file)
         self.blocks: list[BlockEntry] = []
         self.connections: list[Connection] = []
-        self.local_blocks: dict[str, str] = {}        # local name -> "block" | "subsystem"
+        self.local_blocks: dict[str, str] = {}  # local name -> "block" | "subsystem" | "failed"
+        self.children: dict[str, "_Level"] = {}       # subsystem -> its expanded level
         self.sub_inputs: dict[str, dict] = {}         # subsystem -> input name -> [(blk, port)]
         self.sub_outputs: dict[str, dict] = {}        # subsystem -> output name -> (blk, port)
         self.aliases: dict[str, str] = {}
@@ -281,6 +358,15 @@ class _Level:
 
     def full(self, local: str) -> str:
         return f"{self.prefix}{local}"
+
+    def dotted(self, *parts) -> str:
+        """A --set path as the user writes it: 'plant.arm.q0'."""
+        return ".".join([p for p in self.prefix.split("/") if p] + list(parts))
+
+    def _record(self, exc: DiagramError) -> None:
+        if getattr(exc, "fatal", False):
+            raise exc
+        self.errors.append(exc)
 
     def expand(self):
         doc, file = self.doc, self.file
@@ -290,57 +376,94 @@ class _Level:
         blocks = _mapping(blocks, "blocks", file, _line(doc, "blocks"))
         if not blocks:
             raise ConfigError("'blocks:' is empty", file=file, line=_line(doc, "blocks"))
+        sets: dict = {}
+        for path, value in self.sets.items():
+            sets.setdefault(path[0], {})[path[1:]] = value
+        for first, below in sets.items():
+            if first not in blocks:
+                what = "the diagram" if not self.prefix else f"subsystem '{self.prefix[:-1]}'"
+                names = [b for b in blocks if isinstance(b, str)]
+                self._record(ConfigError(
+                    f"--set {self.dotted(first, *next(iter(below)))}=...: {what} has no block "
+                    f"'{first}'; "
+                    f"{_suggest(first, names, 'blocks')}", file=file, line=_line(doc, "blocks")))
         for name, body in blocks.items():
             line = _line(blocks, name)
-            if not isinstance(name, str) or not _NAME.match(name):
-                raise ConfigError(f"block name '{name}' is not valid (letters, digits and _, not "
-                                  "starting with a digit)", file=file, line=line)
-            if not isinstance(body, dict):
-                raise ConfigError(f"block '{name}' must be a mapping with a 'type:' key",
-                                  file=file, line=line)
-            if "type" not in body:
-                raise ConfigError(f"block '{name}' has no 'type:' (the block type, e.g. 'type: Gain'; "
-                              "'fwdstep blocks' lists them)", file=file, line=line)
-            if body["type"] == "subsystem":
-                self._expand_subsystem(name, body, line)
-            else:
-                self._add_block(name, body, line)
+            try:
+                if not isinstance(name, str) or not _NAME.match(name):
+                    raise ConfigError(f"block name '{name}' is not valid (letters, digits and _, "
+                                      "not starting with a digit)", file=file, line=line)
+                if not isinstance(body, dict):
+                    raise ConfigError(f"block '{name}' must be a mapping with a 'type:' key",
+                                      file=file, line=line)
+                if "type" not in body:
+                    raise ConfigError(f"block '{name}' has no 'type:' (the block type, e.g. "
+                                      "'type: Gain'; 'fwdstep blocks' lists them)", file=file,
+                                      line=line)
+                if body["type"] == "subsystem":
+                    self._expand_subsystem(name, body, line, sets.get(name, {}))
+                else:
+                    self._add_block(name, body, line, sets.get(name, {}))
+            except _Failed:         # its inner mistakes are recorded already
+                self.local_blocks[name] = "failed"
+            except DiagramError as exc:
+                self._record(exc)
+                if isinstance(name, str):
+                    self.local_blocks[name] = "failed"
         self._connections()
 
-    def _add_block(self, name: str, body: LineDict, line):
+    def _add_block(self, name: str, body: LineDict, line, sets: dict):
         file = self.file
         type_name = body["type"]
         try:
             cls = lookup(str(type_name))
         except DiagramError as exc:
             raise exc.located(file, _line(body, "type")) from None
+        self.budget.add_block(self.full(name), file, line)
+        items = [(key, value, _line(body, key), False) for key, value in body.items()
+                 if key != "type"]
+        for rest, value in sets.items():
+            key = rest[0]
+            if len(rest) != 1 or key not in cls.params:
+                shown = self.dotted(name, *rest)
+                if len(rest) != 1:
+                    why = (f"block '{self.full(name)}' is a {type_name}, not a subsystem; write "
+                           f"{self.dotted(name)}.PARAMETER")
+                else:
+                    why = (f"block '{self.full(name)}' ({type_name}) has no parameter '{key}'; "
+                           f"{_suggest(key, cls.params, 'parameters')}")
+                raise ParameterError(f"--set {shown}=...: {why}", file=file, line=line,
+                                     block=self.full(name))
+            items = [item for item in items if item[0] != key]
+            items.append((key, value, _line(body, key) if key in body else line, True))
         params = {}
         key_lines = {}
-        for key, value in body.items():
-            if key == "type":
-                continue
-            key_lines[key] = _line(body, key)
+        for key, value, kline, from_set in items:
+            key_lines[key] = kline
+            what = (f"--set {self.dotted(name, key)}" if from_set else
+                    f"block '{self.full(name)}' parameter '{key}'")
             decl = cls.params.get(key)
             if decl is None:
-                valid = ", ".join(cls.params) or "(none)"
                 raise ParameterError(f"block '{self.full(name)}' ({type_name}) has no parameter "
-                                     f"'{key}'; valid parameters are: {valid}", file=file,
-                                     line=key_lines[key], block=self.full(name))
+                                     f"'{key}'; valid parameters are: "
+                                     f"{', '.join(cls.params) or '(none)'}", file=file,
+                                     line=kline, block=self.full(name))
             if decl.kind in ("str", "choice"):
                 params[key] = value
             elif decl.kind == "bool" and isinstance(value, bool):
                 params[key] = value
             else:
                 try:
-                    params[key] = evaluate_value(value, self.ns,
-                                                 f"block '{self.full(name)}' parameter '{key}'")
+                    params[key] = evaluate_value(value, self.ns, what)
+                    if not (isinstance(value, str) and value.strip() in self.ns):
+                        self.budget.charge(params[key], what)    # a bare name shares its array
                 except DiagramError as exc:
-                    raise exc.located(file, key_lines[key]) from None
+                    raise exc.located(file, kline) from None
         self.local_blocks[name] = "block"
         self.blocks.append(BlockEntry(self.full(name), str(type_name), cls, params, file, line,
                                       key_lines))
 
-    def _expand_subsystem(self, name: str, body: LineDict, line):
+    def _expand_subsystem(self, name: str, body: LineDict, line, sets: dict):
         file = self.file
         allowed = ("type", "file", "parameters")
         for key in body:
@@ -350,38 +473,56 @@ class _Level:
         if "file" not in body or not isinstance(body["file"], str):
             raise ConfigError(f"subsystem '{self.full(name)}' needs 'file:' (a path to a diagram)",
                               file=file, line=line)
-        path = os.path.normpath(os.path.join(os.path.dirname(file), body["file"]))
+        if len(self.stack) > MAX_SUBSYSTEM_DEPTH:     # stack = this file and its parents
+            raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
+                              file=file, line=line)
+        path = self.search.resolve(body["file"], file, f"subsystem '{self.full(name)}'",
+                                   _line(body, "file"))
         if os.path.realpath(path) in self.stack:     # realpath: symbolic links too
             chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
             raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
                               file=file, line=_line(body, "file"))
-        if len(self.stack) > MAX_SUBSYSTEM_DEPTH:     # stack = this file and its parents
-            raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
-                              file=file, line=line)
-        if not os.path.isfile(path):
-            why = "is a directory" if os.path.isdir(path) else "does not exist"
-            raise ConfigError(f"subsystem '{self.full(name)}': file '{body['file']}' {why} "
-                              f"(looked for {path})", file=file, line=_line(body, "file"))
         child_doc = _read_document(path, self.cache)
         passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
-        overrides = {}
-        for key, value in passed.items():
-            try:
-                overrides[key] = evaluate_value(value, self.ns,
-                                                f"subsystem '{self.full(name)}' parameter '{key}'")
-            except DiagramError as exc:
-                raise exc.located(file, _line(passed, key)) from None
         child_params = child_doc.get("parameters") or {}
-        for key in overrides:
+        child_blocks = child_doc.get("blocks") if isinstance(child_doc.get("blocks"), dict) else {}
+        passed_items = [(key, value, _line(passed, key), f"subsystem '{self.full(name)}' "
+                         f"parameter '{key}'") for key, value in passed.items()]
+        child_sets = {}
+        for rest, value in sets.items():
+            if len(rest) == 1 and rest[0] in child_params:
+                passed_items = [item for item in passed_items if item[0] != rest[0]]
+                passed_items.append((rest[0], value, _line(body, "parameters") or line,
+                                     f"--set {self.dotted(name, rest[0])}"))
+            elif len(rest) == 1:
+                raise ParameterError(
+                    f"--set {self.dotted(name, rest[0])}=...: subsystem '{self.full(name)}' "
+                    f"({body['file']}) has no parameter '{rest[0]}'; "
+                    f"{_suggest(rest[0], list(child_params), 'parameters')} (a block's "
+                    f"parameter is {self.dotted(name)}.BLOCK.PARAMETER)", file=file, line=line)
+            else:
+                child_sets[rest] = value
+        overrides = {}
+        for key, value, kline, what in passed_items:
+            try:
+                overrides[key] = evaluate_value(value, self.ns, what)
+            except DiagramError as exc:
+                raise exc.located(file, kline) from None
+        for key, value, kline, what in passed_items:
             if key not in child_params:
                 known = ", ".join(child_params) or "(none)"
                 raise ParameterError(f"subsystem '{self.full(name)}' ({body['file']}) has no "
                                      f"parameter '{key}'; parameters are: {known}", file=file,
-                                     line=_line(passed, key))
-        ns = resolve_parameters(child_params, {}, path, preset=overrides)
+                                     line=kline)
+        ns = resolve_parameters(child_params, {}, path, preset=overrides, budget=self.budget)
         child = _Level(child_doc, path, ns, f"{self.full(name)}/",
-                       stack=self.stack + (os.path.realpath(path),), cache=self.cache)
+                       stack=self.stack + (os.path.realpath(path),), cache=self.cache,
+                       sets=child_sets, errors=self.errors, budget=self.budget,
+                       search=self.search)
+        before = len(self.errors)
         child.expand()
+        if len(self.errors) > before:
+            raise _Failed()
         ports = _mapping(child_doc.get("ports"), "ports", path, _line(child_doc, "ports"))
         ins = _mapping(ports.get("inputs"), "ports.inputs", path, _line(ports, "inputs"))
         outs = _mapping(ports.get("outputs"), "ports.outputs", path, _line(ports, "outputs"))
@@ -408,6 +549,7 @@ class _Level:
             self.input_ports.setdefault(target, where)
         self.blocks.extend(child.blocks)
         self.connections.extend(child.connections)
+        self.children[name] = child
         self.local_blocks[name] = "subsystem"
 
     def resolve_src(self, blk: str, port: str, file, line, what: str = "connection") -> tuple:
@@ -419,9 +561,18 @@ class _Level:
         return self._resolve(blk, port, "input", file, line, what)
 
     def _resolve(self, blk, port, direction, file, line, what):
-        kind = self.local_blocks.get(blk)
+        head, dot, rest = blk.partition(".")
+        kind = self.local_blocks.get(head)
         if kind is None:
-            raise self._no_block(blk, file, line, what)
+            raise self._no_block(head, file, line, what)
+        if kind == "failed":
+            raise _Failed()
+        if dot:             # sub.block.port: a port of a block inside a subsystem
+            if kind != "subsystem":
+                raise WiringError(f"{what} names '{blk}.{port}', but '{self.full(head)}' is a "
+                                  "block, not a subsystem", file=file, line=line,
+                                  block=self.full(head))
+            return self.children[head]._resolve(rest, port, direction, file, line, what)
         if kind != "subsystem":
             own = (self.full(blk), port)
             return own if direction == "output" else [own]
@@ -446,15 +597,24 @@ class _Level:
         if conns is None:
             return
         if not isinstance(conns, list):
-            raise ConfigError("'connections:' must be a list of 'src.out -> dst.in' strings",
-                              file=file, line=_line(doc, "connections"))
+            self._record(ConfigError("'connections:' must be a list of 'src.out -> dst.in' "
+                                     "strings", file=file, line=_line(doc, "connections")))
+            return
         for i, text in enumerate(conns):
             line = _line(conns, i)
-            (sb, sp), dsts = _parse_connection(text, file, line)
-            src = self.resolve_src(sb, sp, file, line)
-            for db, dp in dsts:
-                for dst in self.resolve_dst(db, dp, file, line):
-                    self.connections.append(Connection(src, dst, file, line, text))
+            try:
+                (sb, sp), dsts = _parse_connection(text, file, line)
+                src = self.resolve_src(sb, sp, file, line)
+                for db, dp in dsts:
+                    try:
+                        for dst in self.resolve_dst(db, dp, file, line):
+                            self.connections.append(Connection(src, dst, file, line, text))
+                    except _Failed:
+                        pass
+            except _Failed:
+                pass
+            except DiagramError as exc:
+                self._record(exc)
 
 
 SIGNAL_ENTRY_KEYS = ("signal", "label", "unit", "components")
@@ -496,6 +656,7 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
             if key not in cache:
                 cache[key] = _read_document(path)
             return copy.deepcopy(cache[key])
+    check_regular_file(path)        # never open a FIFO, a device or stdin
     doc = read_yaml_file(path)
     if doc is None:
         raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
@@ -503,6 +664,10 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
     if not isinstance(doc, dict):
         raise YamlError(f"the top level must be a mapping (blocks:, connections:, ...), got "
                         f"{kind_of(doc)}", file=path, line=getattr(doc, "line", 1))
+    if not any(key in TOP_LEVEL_KEYS for key in doc):
+        # not a diagram at all: say so without quoting any of its content
+        raise ConfigError(f"not a diagram: none of its {len(doc)} top-level keys is a diagram "
+                          f"section ({', '.join(TOP_LEVEL_KEYS)})", file=path, line=doc.line)
     for key in doc:
         if key not in TOP_LEVEL_KEYS:
             import difflib
@@ -516,6 +681,7 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
 def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
     raw = _mapping(doc.get("simulation"), "simulation", file, _line(doc, "simulation"))
     cfg = SimulationConfig()
+    cfg.defaulted = tuple(k for k in ("t_final", "step", "solver") if k not in raw)
     for key in raw:
         if key not in SIMULATION_KEYS:
             raise ConfigError(f"simulation has no setting '{key}'; settings are: "
@@ -578,28 +744,71 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
     return cfg
 
 
+def split_overrides(overrides: dict, parameters) -> tuple:
+    """``--set`` names -> (top-level parameters, simulation settings, log list or None,
+    block/subsystem paths ``{("plant", "arm", "q0"): value}``)."""
+    params, sim, log, paths = {}, {}, None, {}
+    for name, value in (overrides or {}).items():
+        if name == "log" and "log" not in (parameters or {}):
+            log = value if isinstance(value, list) else [value]
+        elif name.startswith("simulation."):
+            sim[name.split(".", 1)[1]] = value
+        elif "." in name:
+            paths[tuple(name.split("."))] = value
+        else:
+            params[name] = value
+    return params, sim, log, paths
+
+
 def load_spec(path: str, overrides: dict | None = None,
               cache: dict | None = None) -> DiagramSpec:
     """Read, check and flatten a diagram file (and its subsystems).  ``cache``: see
-    ``_read_document`` (parse each file once across many loads)."""
-    path = os.path.normpath(path)
+    ``_read_document`` (parse each file once across many loads).
+
+    ``overrides`` (``--set``): ``NAME`` a top-level parameter, ``simulation.SETTING``,
+    ``log`` (the list of logged signals), ``BLOCK.PARAM`` a block's parameter,
+    ``SUB.PARAM`` a subsystem's parameter, ``SUB.BLOCK.PARAM`` (any depth) a parameter of a
+    block inside a subsystem.  Every mistake that can be found is collected; the first is
+    raised with the others in its ``more`` attribute (``fwdstep validate`` prints them all)."""
+    errors: list = []
+    spec = None
+    try:
+        spec = _load(os.path.normpath(path), overrides, cache, errors)
+    except DiagramError as exc:
+        errors.append(exc)
+    if errors:
+        first = errors[0]
+        first.more = errors[1:]
+        raise first
+    return spec
+
+
+def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -> DiagramSpec:
     doc = _read_document(path, cache)
-    overrides = dict(overrides or {})
-    sim_overrides = {k.split(".", 1)[1]: overrides.pop(k) for k in list(overrides)
-                     if k.startswith("simulation.")}
+    budget = Budget()
+    overrides, sim_overrides, log_override, paths = split_overrides(
+        overrides, doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {})
     ns = resolve_parameters(doc.get("parameters"), overrides, path,
-                            line=_line(doc, "parameters"))
-    if sim_overrides:       # --set simulation.t_final=20: replaces the file's setting
+                            line=_line(doc, "parameters"), budget=budget)
+    if sim_overrides or log_override is not None:  # --set simulation.t_final=20, --set log=[..]
+        original, doc = doc, LineDict(doc)
+        doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
+    if sim_overrides:
         sim_raw = _mapping(doc.get("simulation"), "simulation", path, _line(doc, "simulation"))
         merged = LineDict(sim_raw)
         merged.line, merged.key_lines = sim_raw.line, dict(getattr(sim_raw, "key_lines", {}))
         merged.update(sim_overrides)
-        original, doc = doc, LineDict(doc)
-        doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
         doc["simulation"] = merged
-    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache)
+    if log_override is not None:
+        doc["log"] = log_override
+    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
+                   sets=paths, errors=errors, budget=budget)
     level.expand()
-    sim = _simulation(doc, ns, path)
+    sim = None
+    try:
+        sim = _simulation(doc, ns, path)
+    except DiagramError as exc:
+        errors.append(exc)
     lines, signal_info = {}, {}
     log = doc.get("log")
     if log is not None:

@@ -167,8 +167,8 @@ CASES = [
      "subsystem 'inner' includes itself: subsystem_includes_itself.yaml -> "
      'subsystem_includes_itself.yaml'),
     ("subsystem_missing_file", ConfigError, 2,
-     "subsystem 'plant': file 'no_such_plant.yaml' does not exist (looked for "
-     '{dir}/no_such_plant.yaml)'),
+     "subsystem 'plant': file 'no_such_plant.yaml' not found; looked in: "
+     '{dir}/no_such_plant.yaml'),
     ("subsystem_unknown_parameter", ParameterError, 3,
      "subsystem 'plant' (lib/plant.yaml) has no parameter 'gain'; parameters are: k"),
     ("subsystem_unknown_port", WiringError, 5,
@@ -313,7 +313,8 @@ def test_set_unknown_parameter_cli(good, capsys):
 @pytest.mark.parametrize("arg, message", [
     ("alpha", "--set 'alpha' must have the form NAME=VALUE"),
     ("alpha=", "--set 'alpha=' has no value"),
-    ("2x=1", "--set '2x=1': '2x' is not a parameter name (or simulation.SETTING)"),
+    ("2x=1", "--set '2x=1': '2x' is not a parameter name, simulation.SETTING, log, "
+             "BLOCK.PARAMETER or SUBSYSTEM.BLOCK.PARAMETER"),
 ])
 def test_set_malformed(good, capsys, arg, message):
     assert cli.main(["validate", good, "--set", arg]) == 2

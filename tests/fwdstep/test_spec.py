@@ -42,8 +42,9 @@ def test_bad_simulation_override_names_the_setting(path):
                                "t_final, step, solver, log_every, bound, backend")
 
 
-def test_override_name_must_be_a_parameter_or_simulation_setting():
+def test_override_name_must_be_a_name_or_a_dotted_path():
     with pytest.raises(ConfigError) as info:
-        parse_override("plots.x=1")
-    assert str(info.value) == ("--set 'plots.x=1': 'plots.x' is not a parameter name (or "
-                               "simulation.SETTING)")
+        parse_override("plots..x=1")
+    assert str(info.value) == ("--set 'plots..x=1': 'plots..x' is not a parameter name, "
+                               "simulation.SETTING, log, BLOCK.PARAMETER or "
+                               "SUBSYSTEM.BLOCK.PARAMETER")
