@@ -1,0 +1,413 @@
+"""Memoryless and rate nonlinearities: saturation, dead zone, rate limit, friction, switch,
+1-D table lookup.
+
+Each block's equation lives in one module-level kernel (``output`` / ``derivative`` in the
+form of docs/writing-blocks.md: ``kernel(t, x, u_1, ..., u_k, p_1, ..., p_m, s_1, ...)``),
+written in the subset of NumPy that numba compiles, on arrays with a leading batch axis.
+Numeric parameters (limits, rates, coefficients, tables) live in ``self.p``, so a batched
+sweep may stack any of them.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from fwdstep.block import Block, Param, shape_str
+from fwdstep.errors import ParameterError
+from fwdstep.registry import register
+
+#: The largest number of breakpoints of one Lookup1D table.
+MAX_TABLE = 100_000
+
+
+# ----------------------------------------------------------------------------- kernels
+def saturation_output(t, x, u, lower, upper):
+    """y = min(max(u, lower), upper), per element."""
+    return (np.minimum(np.maximum(u, lower), upper),)
+
+
+def dead_zone_output(t, x, u, lower, upper):
+    """y = u - min(max(u, lower), upper): u - upper above, 0 inside, u - lower below."""
+    return (u - np.minimum(np.maximum(u, lower), upper),)
+
+
+def rate_limiter_derivative(t, x, u, time_constant, rising, falling):
+    """x' = min(max((u - x) / T, -falling), rising), per element (x, u flattened)."""
+    uf = u.reshape((u.shape[0], x.shape[1]))
+    return np.minimum(np.maximum((uf - x) / time_constant, -falling), rising)
+
+
+def rate_limiter_output_vector(t, x, u, time_constant, rising, falling):
+    """y = x."""
+    return (x.copy(),)
+
+
+def rate_limiter_output_scalar(t, x, u, time_constant, rising, falling):
+    """y = x (scalar signal)."""
+    return (x[:, 0].copy(),)
+
+
+def friction_output(t, x, qdot, coulomb, viscous, velocity_scale):
+    """tau_f = -(F_c sgn(qdot) + F_v qdot), sgn = sign (velocity_scale 0) or tanh(qdot / v_s)."""
+    smooth = np.tanh(qdot / np.maximum(velocity_scale, 1e-300))
+    sgn = np.where(velocity_scale > 0.0, smooth, np.sign(qdot))
+    return (-(coulomb * sgn + viscous * qdot),)
+
+
+def switch_output_same(t, x, u1, control, u2, threshold):
+    """y = u1 where control >= threshold, else u2 (control per element)."""
+    return (np.where(control >= threshold, u1, u2),)
+
+
+def switch_output_scalar1(t, x, u1, control, u2, threshold):
+    """Scalar control, vector data."""
+    c = control.reshape((control.shape[0], 1))
+    return (np.where(c >= threshold, u1, u2),)
+
+
+def switch_output_scalar2(t, x, u1, control, u2, threshold):
+    """Scalar control, matrix data."""
+    c = control.reshape((control.shape[0], 1, 1))
+    return (np.where(c >= threshold, u1, u2),)
+
+
+def lookup_output(t, x, u, breakpoints, values, linear_extrapolation):
+    """Piecewise-linear interpolation per element: u (Bu, N), tables (Bp, k); y = v_j + (v_{j+1} - v_j) (u - b_j) / (b_{j+1} - b_j) on
+    b_j <= u < b_{j+1}; outside [b_0, b_{k-1}] the end segments are extended (linear) or u
+    is clamped to the ends."""
+    B = max(u.shape[0], breakpoints.shape[0])
+    N = u.shape[1]
+    k = breakpoints.shape[1]
+    y = np.empty((B, N))
+    for b in range(B):
+        ub = u[min(b, u.shape[0] - 1)]
+        bp = breakpoints[min(b, breakpoints.shape[0] - 1)]
+        v = values[min(b, values.shape[0] - 1)]
+        if not linear_extrapolation:
+            ub = np.minimum(np.maximum(ub, bp[0]), bp[k - 1])
+        j = np.searchsorted(bp, ub, side="right") - 1
+        j = np.minimum(np.maximum(j, 0), k - 2)
+        b0 = bp[j]
+        v0 = v[j]
+        y[b] = v0 + (v[j + 1] - v0) * (ub - b0) / (bp[j + 1] - b0)
+    return (y,)
+
+
+# ----------------------------------------------------------------------------- helpers
+def _shape(block: Block, value) -> tuple:
+    arr = np.atleast_1d(np.asarray([] if value is None else value, dtype=float))
+    if arr.ndim != 1 or np.any(arr < 1) or np.any(arr != np.floor(arr)) or arr.size > 2:
+        raise ParameterError(
+            f"block '{block.name}' parameter 'shape' must be [] (scalar), [n] or [n, m] with "
+            f"positive whole numbers, got {np.asarray(value).tolist()}", block=block.name)
+    return tuple(int(s) for s in arr)
+
+
+def _per_element(block: Block, key: str, value, shape: tuple) -> np.ndarray:
+    """A parameter given as a number or one value per element of ``shape``."""
+    arr = np.asarray(value, dtype=float)
+    try:
+        return np.array(np.broadcast_to(arr, shape))
+    except ValueError:
+        raise ParameterError(
+            f"block '{block.name}' parameter '{key}' has shape {shape_str(arr.shape)}, which "
+            f"does not broadcast to the signal shape {shape_str(shape)}",
+            block=block.name) from None
+
+
+def _infer_shape(block: Block, shape, *arrays) -> tuple:
+    """The signal shape: ``shape`` if given, else the broadcast shape of the limits."""
+    if shape is not None:
+        return _shape(block, shape)
+    try:
+        return np.broadcast_shapes(*(np.shape(a) for a in arrays))
+    except ValueError:
+        raise ParameterError(f"block '{block.name}': the limits do not broadcast to one shape; "
+                             "give 'shape'", block=block.name) from None
+
+
+# ----------------------------------------------------------------------------- blocks
+@register
+class Saturation(Block):
+    """Saturation: each element clipped to [lower, upper] (e.g. a torque limit).
+
+    Equation: y_i = min(max(u_i, lower_i), upper_i).
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | u    | in        | shape | -           |
+        | y    | out       | shape | u           |
+
+    Parameters:
+        lower: lower limit, a number or one per element (default -inf: none).
+        upper: upper limit, a number or one per element (default +inf: none).
+        shape: signal shape ([] scalar, [n], [n, m]); default: the limits' broadcast shape.
+    """
+
+    params = {
+        "lower": Param("array", None, "lower limit (number or per element)"),
+        "upper": Param("array", None, "upper limit (number or per element)"),
+        "shape": Param("array", None, "signal shape, e.g. [2]; default: the limits' shape"),
+    }
+    example = {"lower": [-1.0, -2.0], "upper": [1.0, 0.5]}
+
+    def setup(self, lower, upper, shape):
+        if lower is None and upper is None:
+            raise ParameterError(f"block '{self.name}' ({self.type_name}) needs 'lower', "
+                                 "'upper' or both", block=self.name)
+        lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
+        hi = np.inf if upper is None else np.asarray(upper, dtype=float)
+        shape = _infer_shape(self, shape, lo, hi)
+        lo, hi = _per_element(self, "lower", lo, shape), _per_element(self, "upper", hi, shape)
+        if np.any(lo > hi):
+            raise ParameterError(f"block '{self.name}' parameter 'lower' must not exceed "
+                                 f"'upper', got lower {lo.tolist()}, upper {hi.tolist()}",
+                                 block=self.name)
+        self.declare_input("u", shape)
+        self.declare_output("y", shape, feedthrough=("u",))
+        self.set_param("lower", lo)
+        self.set_param("upper", hi)
+        self.set_kernels(output=saturation_output, params=("lower", "upper"))
+
+
+@register
+class DeadZone(Block):
+    """DeadZone: zero output inside [lower, upper], shifted input outside (per element).
+
+    Equation: y_i = u_i - upper_i if u_i > upper_i; 0 if lower_i <= u_i <= upper_i;
+    u_i - lower_i if u_i < lower_i  (i.e. y = u - Saturation(u)).
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | u    | in        | shape | -           |
+        | y    | out       | shape | u           |
+
+    Parameters:
+        lower: start of the dead zone (number or per element; <= upper).
+        upper: end of the dead zone (number or per element).
+        shape: signal shape ([] scalar, [n], [n, m]); default: the limits' broadcast shape.
+    """
+
+    params = {
+        "lower": Param("array", doc="start of the dead zone (number or per element)"),
+        "upper": Param("array", doc="end of the dead zone (number or per element)"),
+        "shape": Param("array", None, "signal shape, e.g. [2]; default: the limits' shape"),
+    }
+    example = {"lower": -0.5, "upper": [0.5, 1.0]}
+
+    def setup(self, lower, upper, shape):
+        shape = _infer_shape(self, shape, lower, upper)
+        lo = _per_element(self, "lower", lower, shape)
+        hi = _per_element(self, "upper", upper, shape)
+        if np.any(lo > hi):
+            raise ParameterError(f"block '{self.name}' parameter 'lower' must not exceed "
+                                 f"'upper', got lower {lo.tolist()}, upper {hi.tolist()}",
+                                 block=self.name)
+        self.declare_input("u", shape)
+        self.declare_output("y", shape, feedthrough=("u",))
+        self.set_param("lower", lo)
+        self.set_param("upper", hi)
+        self.set_kernels(output=dead_zone_output, params=("lower", "upper"))
+
+
+@register
+class RateLimiter(Block):
+    """RateLimiter: a first-order lag whose rate is clipped (state-based rate limit).
+
+    Equation: y = x,  x_i' = min(max((u_i - x_i) / T, -falling_i), rising_i),  x(0) = x0.
+    While |u - x| > T * rate the output moves at exactly the limiting rate (a ramp); near
+    the input it follows u as the lag 1 / (T s + 1).  As T -> 0 this is the ideal rate
+    limiter (Simulink's Rate Limiter): y follows u wherever u's rate is within the limits.
+    Being a state, it never feeds u through, so it breaks algebraic loops.
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | u    | in        | shape | -           |
+        | y    | out       | shape | -           |
+
+    Parameters:
+        rising: largest rate of increase (> 0; number or per element; units of u per s).
+        falling: largest rate of decrease (> 0; default: rising).
+        time_constant: T of the lag inside the limits (s, > 0; default 1e-3).
+        x0: initial output (number or per element; default 0).
+        shape: signal shape ([] scalar or [n]); default: the rates' broadcast shape.
+    """
+
+    params = {
+        "rising": Param("array", doc="largest rate of increase (> 0)"),
+        "falling": Param("array", None, "largest rate of decrease (> 0; default rising)"),
+        "time_constant": Param("float", 1e-3, "lag time constant T (s)"),
+        "x0": Param("array", 0.0, "initial output"),
+        "shape": Param("array", None, "signal shape, [] or [n]"),
+    }
+    example = {"rising": [1.0, 2.0], "falling": 3.0, "time_constant": 0.1, "x0": [0.5, -0.5]}
+
+    def setup(self, rising, falling, time_constant, x0, shape):
+        falling = rising if falling is None else falling
+        shape = _infer_shape(self, shape, rising, falling, x0)
+        if len(shape) > 1:
+            raise ParameterError(f"block '{self.name}' shape must be [] or [n], got "
+                                 f"{list(shape)}", block=self.name)
+        rise = _per_element(self, "rising", rising, shape).reshape(-1)
+        fall = _per_element(self, "falling", falling, shape).reshape(-1)
+        if np.any(rise <= 0) or np.any(fall <= 0):
+            raise ParameterError(f"block '{self.name}' parameters 'rising' and 'falling' must "
+                                 f"be positive, got {rise.tolist()} and {fall.tolist()}",
+                                 block=self.name)
+        if not time_constant > 0:
+            raise ParameterError(f"block '{self.name}' parameter 'time_constant' must be "
+                                 f"positive, got {time_constant}", block=self.name)
+        self.declare_input("u", shape)
+        self.declare_output("y", shape, feedthrough=())
+        size = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        self.declare_state(size, _per_element(self, "x0", x0, shape).reshape(-1))
+        self.set_param("time_constant", [time_constant])           # (1, 1): per variant
+        self.set_param("rising", rise)
+        self.set_param("falling", fall)
+        out = rate_limiter_output_scalar if shape == () else rate_limiter_output_vector
+        self.set_kernels(output=out, derivative=rate_limiter_derivative,
+                         params=("time_constant", "rising", "falling"))
+
+
+@register
+class Friction(Block):
+    """Friction: Coulomb plus viscous joint friction, a plant-side torque from qdot.
+
+    Equation: tau_f,i = -(F_c,i sgn(qdot_i) + F_v,i qdot_i), with sgn = sign when
+    velocity_scale = 0 (exact Coulomb friction, discontinuous at qdot = 0) or
+    sgn(v) = tanh(v / v_s) for velocity_scale v_s > 0 (smooth, so fixed-step solvers keep
+    their order).  Wire ``qdot`` from the plant and ``tau_f`` into the plant's ``tau_star``
+    (through a Sum if there is also a disturbance): the friction then acts on the arm and is
+    unknown to the controller.
+
+    Ports:
+        | port  | direction | shape | feedthrough |
+        | qdot  | in        | (n,)  | -           |
+        | tau_f | out       | (n,)  | qdot        |
+
+    Parameters:
+        n: number of joints.
+        coulomb: F_c >= 0, Coulomb friction torque (N m; number or (n,)).
+        viscous: F_v >= 0, viscous coefficient (N m s/rad; number or (n,); default 0).
+        velocity_scale: v_s >= 0 (rad/s; default 0: exact sign).
+    """
+
+    params = {
+        "n": Param("int", doc="number of joints"),
+        "coulomb": Param("array", 0.0, "Coulomb friction torque F_c (N m)"),
+        "viscous": Param("array", 0.0, "viscous coefficient F_v (N m s/rad)"),
+        "velocity_scale": Param("float", 0.0, "tanh smoothing velocity v_s (0: sign)"),
+    }
+    example = {"n": 2, "coulomb": [0.5, 0.3], "viscous": 0.2, "velocity_scale": 0.01}
+
+    def setup(self, n, coulomb, viscous, velocity_scale):
+        if n < 1:
+            raise ParameterError(f"block '{self.name}' parameter 'n' must be at least 1, got "
+                                 f"{n}", block=self.name)
+        fc = _per_element(self, "coulomb", coulomb, (n,))
+        fv = _per_element(self, "viscous", viscous, (n,))
+        if np.any(fc < 0) or np.any(fv < 0) or velocity_scale < 0:
+            raise ParameterError(f"block '{self.name}' parameters 'coulomb', 'viscous' and "
+                                 "'velocity_scale' must not be negative", block=self.name)
+        self.declare_input("qdot", (n,))
+        self.declare_output("tau_f", (n,), feedthrough=("qdot",), label=r"$\tau_f$",
+                            unit="N m")
+        self.set_param("coulomb", fc)
+        self.set_param("viscous", fv)
+        self.set_param("velocity_scale", np.full(1, velocity_scale))
+        self.set_kernels(output=friction_output,
+                         params=("coulomb", "viscous", "velocity_scale"))
+
+
+@register
+class Switch(Block):
+    """Switch: passes u1 where control >= threshold, u2 elsewhere.
+
+    Equation: y = u1 if control >= threshold, else u2 (per element when control has the
+    data's shape; one choice for the whole signal when control is a scalar).
+
+    Ports:
+        | port    | direction | shape              | feedthrough        |
+        | u1      | in        | shape              | -                  |
+        | control | in        | () or shape        | -                  |
+        | u2      | in        | shape              | -                  |
+        | y       | out       | shape              | u1, control, u2    |
+
+    Parameters:
+        threshold: the switching level (default 0).
+        shape: shape of u1, u2 and y ([] scalar, [n], [n, m]; default scalar).
+        per_element: true: control has the data's shape; false (default): control is scalar.
+    """
+
+    params = {
+        "threshold": Param("float", 0.0, "switching level"),
+        "shape": Param("array", None, "data shape, e.g. [2]; default scalar"),
+        "per_element": Param("bool", False, "control has the data's shape"),
+    }
+    example = {"threshold": 0.5, "shape": [2]}
+
+    def setup(self, threshold, shape, per_element):
+        shape = _shape(self, shape)
+        self.declare_input("u1", shape)
+        self.declare_input("control", shape if per_element else ())
+        self.declare_input("u2", shape)
+        self.declare_output("y", shape)
+        # (1, 1, ...): one threshold per variant, broadcast over the data's elements
+        self.set_param("threshold", np.full((1,) * len(shape), threshold))
+        if per_element or shape == ():
+            kernel = switch_output_same
+        else:
+            kernel = switch_output_scalar1 if len(shape) == 1 else switch_output_scalar2
+        self.set_kernels(output=kernel, params=("threshold",))
+
+
+@register
+class Lookup1D(Block):
+    """Lookup1D: piecewise-linear interpolation in a 1-D table, per element of u.
+
+    Equation: for b_j <= u_i < b_{j+1},
+    y_i = v_j + (v_{j+1} - v_j) (u_i - b_j) / (b_{j+1} - b_j); outside [b_0, b_{k-1}]
+    y_i = v_0 / v_{k-1} (extrapolation: clamp) or the end segment extended (linear).
+
+    Ports:
+        | port | direction | shape       | feedthrough |
+        | u    | in        | (n,)        | -           |
+        | y    | out       | (n,)        | u           |
+
+    Parameters:
+        breakpoints: b_0 < b_1 < ... < b_{k-1} (k >= 2, strictly increasing).
+        values: v_0, ..., v_{k-1}, one per breakpoint.
+        extrapolation: clamp (default) or linear.
+        n: size of u and y (default 1; a scalar signal is a vector of size 1 here).
+    """
+
+    params = {
+        "breakpoints": Param("array", doc="strictly increasing table inputs b_j"),
+        "values": Param("array", doc="table outputs v_j, one per breakpoint"),
+        "extrapolation": Param("choice", "clamp", "outside the table: clamp or linear",
+                               choices=("clamp", "linear")),
+        "n": Param("int", 1, "size of u and y"),
+    }
+    example = {"breakpoints": [0.0, 1.0, 3.0], "values": [0.0, 2.0, 1.0], "n": 2,
+               "extrapolation": "linear"}
+
+    def setup(self, breakpoints, values, extrapolation, n):
+        bp = np.asarray(breakpoints, dtype=float)
+        v = np.asarray(values, dtype=float)
+        if bp.ndim != 1 or bp.size < 2 or np.any(np.diff(bp) <= 0):
+            raise ParameterError(f"block '{self.name}' parameter 'breakpoints' must be a list "
+                                 f"of at least 2 strictly increasing numbers, got "
+                                 f"{bp.tolist()}", block=self.name)
+        self.require_size("number of breakpoints", bp.size, MAX_TABLE)
+        if v.shape != bp.shape:
+            raise ParameterError(f"block '{self.name}' parameter 'values' must have one value "
+                                 f"per breakpoint ({bp.size}), got shape {v.shape}",
+                                 block=self.name)
+        if n < 1:
+            raise ParameterError(f"block '{self.name}' parameter 'n' must be at least 1, got "
+                                 f"{n}", block=self.name)
+        self.declare_input("u", (n,))
+        self.declare_output("y", (n,), feedthrough=("u",))
+        self.set_param("breakpoints", bp)
+        self.set_param("values", v)
+        self.set_kernels(output=lookup_output, params=("breakpoints", "values"),
+                         static=(extrapolation == "linear",))
