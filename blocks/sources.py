@@ -428,3 +428,122 @@ class Polynomial(Block):
         if self._scalar:
             y = y[..., 0]
         return tuple(y[:, j] for j in range(self._m + 1))
+
+
+# ---------------------------------------------------------------- piecewise-constant sources
+def pulse_output(t, x, high, low, period, width, delay):
+    """y = high on [delay + k period, delay + k period + width), k = 0, 1, ..., low elsewhere;
+    the edges are the same floating-point numbers as Pulse.discontinuities."""
+    k = np.floor((t - delay) / period)
+    k = np.where(t >= delay + (k + 1.0) * period, k + 1.0, k)     # rounding of the division
+    k = np.where(t < delay + k * period, k - 1.0, k)
+    rise = delay + k * period
+    on = (k >= 0.0) & (t < rise + width)
+    return (np.where(on, high, low),)
+
+
+@register
+class Pulse(Block):
+    """Pulse train: `high` for `width` seconds every `period` seconds from `delay` on, else `low`.
+
+    Equation: y(t) = high if delay + k period <= t < delay + k period + width for some
+    k = 0, 1, ..., else low (per element; right-continuous).  Its edges are declared as
+    discontinuities, so a fixed-step run integrates it exactly (docs/discrete-time.md).
+
+    Ports:
+        | port | direction | shape                   | feedthrough |
+        | y    | out       | broadcast shape of high, low | -      |
+
+    Parameters:
+        high: value during a pulse (number or array).
+        low: value between pulses (default 0).
+        period: pulse period [s] (> 0).
+        width: pulse width [s] (0 < width < period).
+        delay: start of the first pulse [s] (default 0).
+    """
+
+    params = {
+        "high": Param("array", doc="value during a pulse"),
+        "low": Param("array", default=0.0, doc="value between pulses"),
+        "period": Param("float", doc="pulse period [s]"),
+        "width": Param("float", doc="pulse width [s], 0 < width < period"),
+        "delay": Param("float", default=0.0, doc="start of the first pulse [s]"),
+    }
+    example = {"high": [1.0, 2.0], "low": -0.5, "period": 0.2, "width": 0.05, "delay": 0.1}
+
+    def setup(self, high, low, period, width, delay):
+        if not period > 0 or not 0 < width < period:
+            raise ParameterError(f"block '{self.name}': Pulse needs period > 0 and 0 < width < "
+                                 f"period, got period {period:g}, width {width:g}",
+                                 block=self.name)
+        high, low = np.asarray(high, dtype=float), np.asarray(low, dtype=float)
+        try:
+            shape = np.broadcast_shapes(high.shape, low.shape)
+        except ValueError:
+            raise ParameterError(f"block '{self.name}' parameters 'high' {shape_str(high.shape)} "
+                                 f"and 'low' {shape_str(low.shape)} do not broadcast",
+                                 block=self.name) from None
+        self.declare_output("y", shape, feedthrough=())
+        self.set_param("high", np.broadcast_to(high, shape))
+        self.set_param("low", np.broadcast_to(low, shape))
+        self.period, self.width, self.delay = float(period), float(width), float(delay)
+        self.set_kernels(output=pulse_output, params=("high", "low"),
+                         static=(self.period, self.width, self.delay))
+
+    def discontinuities(self, t_final):
+        from fwdstep.events import sample_instants
+        rises = sample_instants(self, self.period, self.delay, t_final)
+        return np.concatenate([rises, rises + self.width])
+
+
+def piecewise_output(t, x, times, values):
+    """y = values[i] with i = the number of switching times <= t (per variant)."""
+    i = np.sum(times <= t, axis=1)                                   # (B,) or (1,)
+    n = max(i.shape[0], values.shape[0])
+    out = np.empty((n,) + values.shape[2:])
+    for b in range(n):
+        out[b] = values[min(b, values.shape[0] - 1), i[min(b, i.shape[0] - 1)]]
+    return (out,)
+
+
+@register
+class PiecewiseConstant(Block):
+    """Piecewise-constant signal: values[i] from times[i-1] to times[i] (a table of levels).
+
+    Equation: y(t) = values[0] for t < times[0]; y(t) = values[i] for
+    times[i-1] <= t < times[i]; y(t) = values[m] for t >= times[m-1] (right-continuous).
+    The switching times are declared as discontinuities, so a fixed-step run integrates the
+    signal exactly (a payload that changes at t = 5 s, a setpoint schedule).
+
+    Ports:
+        | port | direction | shape                       | feedthrough |
+        | y    | out       | shape of one row of values  | -           |
+
+    Parameters:
+        times: the m switching times [s], strictly increasing.
+        values: m + 1 levels (a list of numbers, or of equally shaped arrays).
+    """
+
+    params = {
+        "times": Param("array", doc="switching times [s], strictly increasing"),
+        "values": Param("array", doc="m + 1 levels, one more than times"),
+    }
+    example = {"times": [0.1, 0.25], "values": [[0.0, 1.0], [2.0, -1.0], [0.5, 0.5]]}
+
+    def setup(self, times, values):
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        values = np.asarray(values, dtype=float)
+        if times.ndim != 1 or (times.size > 1 and not np.all(np.diff(times) > 0)):
+            raise ParameterError(f"block '{self.name}' parameter 'times' must be a strictly "
+                                 "increasing list of times", block=self.name)
+        if values.ndim == 0 or values.shape[0] != times.size + 1:
+            raise ParameterError(f"block '{self.name}' needs one more value than times: "
+                                 f"{times.size} times, {values.shape[0] if values.ndim else 1} "
+                                 "values", block=self.name)
+        self.declare_output("y", values.shape[1:], feedthrough=())
+        self.set_param("times", times)
+        self.set_param("values", values)
+        self.set_kernels(output=piecewise_output, params=("times", "values"))
+
+    def discontinuities(self, t_final):
+        return np.unique(self.p.times)
