@@ -42,9 +42,34 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("-o", "--outdir", default=None)
     sw.add_argument("--force", action="store_true")
     sw.add_argument("-q", "--quiet", action="store_true")
+    _add_results_commands(sub, run)
     return p
 
 
+def _add_results_commands(sub, run) -> None:
+    """graph, report, compare and run's figure/report options (fwdstep.drawing/report/compare)."""
+    run.add_argument("--figure-format", action="append", default=None,
+                     choices=("png", "pdf", "svg"),
+                     help="figure file format (repeatable; default png)")
+    run.add_argument("--report", action="store_true",
+                     help="also write report.html (self-contained) into the output directory")
+    gr = sub.add_parser("graph", help="draw a diagram as a block diagram (SVG, PNG or PDF)")
+    gr.add_argument("diagram")
+    gr.add_argument("-o", "--output", default=None,
+                    help="picture file, .svg/.png/.pdf (default: out/<diagram name>/diagram.svg)")
+    gr.add_argument("--depth", type=int, default=None,
+                    help="draw subsystems nested deeper than this as one box (default: all)")
+    gr.add_argument("--engine", choices=("auto", "dot", "matplotlib"), default="auto",
+                    help="layout: graphviz dot (default when installed) or matplotlib")
+    gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+
+
+def _results_command(args):
+    """Exit code of graph/report/compare, or None for other commands."""
+    if args.command == "graph":
+        from fwdstep.drawing import cmd_graph
+        return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine)
+    return None
 
 
 def main(argv=None) -> int:
@@ -55,6 +80,9 @@ def main(argv=None) -> int:
         return 2 if exc.code not in (0, None) else 0
     from fwdstep import commands
     try:
+        code = _results_command(args)
+        if code is not None:
+            return code
         if args.command == "run":
             return commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
                                     plots=not args.no_plots, quiet=args.quiet,

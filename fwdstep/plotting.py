@@ -140,17 +140,25 @@ def time_axis(ax, t: np.ndarray) -> None:
     ax.set_xlim(float(t[0]) - 0.012 * span, float(t[-1]) + 0.012 * span)
 
 
-def headline(description: str, width: int = 100, max_lines: int = 2) -> str:
-    """The description's first line, wrapped (never cut mid-sentence); if that takes more than
-    ``max_lines`` lines, its first sentence."""
-    lines = [ln.strip() for ln in (description or "").strip().splitlines() if ln.strip()]
-    if not lines:
-        return ""
-    text = lines[0]
+def headline(description: str, width: int = 100, max_lines: int = 3) -> str:
+    """The first sentence of the description's first paragraph, wrapped at words into at most
+    ``max_lines`` lines (a longer sentence ends at its last clause that fits, then '…')."""
+    lines = []
+    for ln in (description or "").strip("\n").splitlines():
+        if not ln.strip() or (lines and len(ln) - len(ln.lstrip()) > 0):
+            break                     # a blank line or an indented (displayed) line ends it
+        lines.append(ln.strip())
+    text = " ".join(lines)
+    text = re.split(r"(?<=[.!?])\s+(?=[A-Z])", text, maxsplit=1)[0]
     wrapped = textwrap.wrap(text, width)
     if len(wrapped) > max_lines:
-        first = re.split(r"(?<=[.;:])\s", text, maxsplit=1)[0]
-        wrapped = textwrap.wrap(first, width)
+        clauses = re.split(r"(?<=[,;:])\s+", text)
+        keep = clauses[0]
+        for clause in clauses[1:]:
+            if len(textwrap.wrap(f"{keep} {clause} …", width)) > max_lines:
+                break
+            keep = f"{keep} {clause}"
+        wrapped = textwrap.wrap(keep.rstrip(",;:") + " …", width)
     return "\n".join(wrapped)
 
 

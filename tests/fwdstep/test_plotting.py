@@ -148,8 +148,14 @@ def test_long_titles_wrap_at_words_and_fit_the_figure(tmp_path):
     fig.canvas.draw()
     box = fig._suptitle.get_window_extent()
     assert box.x0 >= 0 and box.x1 <= fig.bbox.width
-    too_long = "First sentence. " + "word " * 80
-    assert headline(too_long) == "First sentence."
+    assert headline("First sentence. Second " + "word " * 80) == "First sentence."
+    clauses = "A long one, " + ", ".join(f"clause number {i}" for i in range(40))
+    short = headline(clauses, width=60, max_lines=2)
+    lines = short.split("\n")
+    assert len(lines) == 2 and all(len(ln) <= 60 for ln in lines) and short.endswith(" …")
+    kept = " ".join(lines)[:-2]
+    assert clauses.startswith(kept) and clauses[len(kept)] == ","   # ends at a clause
+    assert headline("Indented lines end it:\n  (117) chi'' = x") == "Indented lines end it:"
 
 
 def test_time_zero_is_inside_the_axes(tmp_path):

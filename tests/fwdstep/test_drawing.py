@@ -1,0 +1,115 @@
+"""fwdstep graph: boxes, ports, shapes, feedback, frames, equation numbers; dot and fallback."""
+import glob
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+import fwdstep
+from cli import main
+from fwdstep.drawing import (build_picture, diagram_dot, draw_diagram, equation_of,
+                             feedback_edges, layered_positions)
+
+needs_dot = pytest.mark.skipif(shutil.which("dot") is None, reason="graphviz dot not installed")
+
+
+def test_feedback_edges_are_the_edges_that_close_a_loop():
+    nodes = ["ref", "s", "tau", "arm", "e", "qd"]
+    edges = [("qd", "ref"), ("ref", "s"), ("s", "tau"), ("tau", "arm"), ("arm", "ref"),
+             ("arm", "s"), ("arm", "e"), ("qd", "e")]
+    assert feedback_edges(nodes, edges) == {("arm", "ref"), ("arm", "s")}
+
+
+def test_theorem1_picture():
+    d = fwdstep.load_diagram("diagrams/theorem1.yaml")
+    pic = build_picture(d)
+    assert set(pic.boxes) == {b.name for b in d.blocks}
+    arm = pic.boxes["arm"]
+    assert (arm.kind, arm.inputs, arm.outputs, arm.equation) == (
+        "TwoLinkArm", ["tau", "tau_star"], ["q", "qdot"], "(1)")
+    assert pic.boxes["Ks"].equation == "(4)" and pic.boxes["truth"].equation == ""
+    edges = {(e[0], e[1], e[2], e[3]): (e[4], e[5]) for e in pic.edges}
+    assert len(edges) == len(d.spec.connections)
+    assert edges[("Y", "Y", "adapt", "W")] == ("2×4", False)
+    assert edges[("qd", "y", "ref", "q_d")] == ("2", False)
+    assert edges[("arm", "q", "ref", "q")] == ("2", True)          # the loop is closed here
+    # with the feedback removed the rest is a forward (acyclic) flow, left to right
+    pos = layered_positions(pic)
+    for src, _, dst, _, _, back in pic.edges:
+        if not back:
+            assert pos[src][0] < pos[dst][0]
+
+
+def test_equation_numbers_come_from_the_yaml_comments():
+    d = fwdstep.load_diagram("diagrams/theorem9.yaml")
+    eq = {e.name: equation_of(e) for e in d.spec.blocks}
+    assert eq["chi1dd"] == "(117)"          # its own comment
+    assert eq["kpsi"] == "(120)"            # the '# (120)' heading its group
+    assert eq["plant/arm"] == "(1)"         # inside lib/plant.yaml
+    assert eq["qd"] == ""                   # '# q_d' names no equation
+
+
+def test_subsystems_are_frames_or_one_box_at_a_chosen_depth():
+    d = fwdstep.load_diagram("diagrams/theorem9.yaml")
+    full = build_picture(d)
+    assert set(full.frames) == {"plant", "qds", "torque"}
+    assert full.boxes["plant/arm"].frame == ("plant",)
+    top = build_picture(d, depth=0)
+    assert top.frames == {}
+    plant = top.boxes["plant"]
+    assert (plant.kind, sorted(plant.outputs)) == ("subsystem plant.yaml", ["Y", "q", "qdot"])
+    assert {"tau", "tau_star", "z", "zdot"} <= set(plant.inputs)
+    assert not any(k.startswith("plant/") for k in top.boxes)
+    assert ("torque", "tau", "plant", "tau") in {e[:4] for e in top.edges}
+
+
+@needs_dot
+def test_every_shipped_diagram_draws_with_dot(tmp_path):
+    for path in sorted(glob.glob("diagrams/*.yaml")):
+        pic = build_picture(fwdstep.load_diagram(path))
+        source = diagram_dot(pic)
+        proc = subprocess.run(["dot", "-Tsvg"], input=source.encode(), capture_output=True,
+                              timeout=120)
+        assert proc.returncode == 0, (path, proc.stderr[:300])
+        svg = proc.stdout.decode()
+        for box in pic.boxes.values():
+            assert f">{box.title}<" in svg, (path, box.title)
+
+
+@needs_dot
+def test_graph_command_writes_svg_and_png(tmp_path, capsys):
+    out = tmp_path / "t1.svg"
+    assert main(["graph", "diagrams/theorem1.yaml", "-o", str(out)]) == 0
+    svg = out.read_text()
+    assert "eq. (4)" in svg and ">adapt<" in svg and "stroke-dasharray" in svg
+    assert capsys.readouterr().out == f"wrote {out} (11 blocks, layout: dot)\n"
+    assert main(["graph", "diagrams/theorem1.yaml", "-o", str(tmp_path / "t1.png")]) == 0
+    assert (tmp_path / "t1.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_matplotlib_fallback_draws_without_pyplot(tmp_path):
+    code = ("import sys, fwdstep; from fwdstep.drawing import draw_diagram; "
+            "d = fwdstep.load_diagram('diagrams/theorem1.yaml'); "
+            f"print(draw_diagram(d, {str(tmp_path / 'f.png')!r}, engine='matplotlib'), "
+            "'matplotlib.pyplot' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["matplotlib", "False"]
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_graph_errors_are_one_line(tmp_path, capsys):
+    assert main(["graph", "diagrams/theorem1.yaml", "-o", str(tmp_path / "x.jpg")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"fwdstep: cannot draw to '{tmp_path / 'x.jpg'}': the file name must end in "
+                   ".svg, .png, .pdf\n")
+    assert main(["graph", str(tmp_path / "missing.yaml")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_draw_refuses_a_directory(tmp_path):
+    d = fwdstep.load_diagram("diagrams/theorem2.yaml")
+    (tmp_path / "pic.svg").mkdir()
+    with pytest.raises(fwdstep.OutputError):
+        draw_diagram(d, str(tmp_path / "pic.svg"), engine="matplotlib")
