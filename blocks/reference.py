@@ -220,6 +220,7 @@ class ReferenceDynamics(LinearBlock):
     example = {"variant": "eq29", "ell": 3, "n": 2, "alpha": 2.0, "kappa": 1.5,
                "Lambda": [[2.0, 0.5], [0.5, 1.0]]}
     init_from_inputs = True
+    inspection_attributes = ("alphas",)   # sweeps may batch different alphas
 
     def setup(self, variant, ell, n, alphas, alpha, kappa, Lambda, z0):
         c, sigma, uses_lambda, inputs = VARIANTS[variant]

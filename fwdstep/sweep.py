@@ -3,57 +3,88 @@
 ::
 
     fwdstep sweep DIAGRAM --grid ell=1,2,3 --grid K=20,50
-                  [--random NAME=LOW:HIGH ... --samples N --seed S] [--set NAME=VALUE ...]
-                  [--sequential] [-o OUTDIR] [--force] [-q]
+                  [--random NAME=DIST ... --samples N --seed S --design random|lhs|sobol]
+                  [--seed-parameter NAME] [--set NAME=VALUE ...]
+                  [--workers N | --scheduler ADDRESS] [--max-memory SIZE] [--batch-size N]
+                  [--sequential] [--resume] [--no-signals] [-o OUTDIR] [--force] [-q]
 
 The variants are the Cartesian product of the ``--grid`` values (each value a number or an
-expression, e.g. ``K=20*eye(2),50*eye(2)``; commas inside brackets do not split), each
-combined with ``N`` random samples of the ``--random`` parameters (uniform in
-[LOW, HIGH], drawn with ``numpy.random.default_rng(S)``); ``--set`` values apply to every
-variant.  Variants whose diagrams have the same structure (shapes and state sizes: every
-``K`` for one ``ell``) run as one batch (``fwdstep.compile_batch``), a structure per batch;
-``--sequential`` runs them one by one instead (the same numbers, slower).  A variant that
-diverges is frozen and marked while the rest of its batch goes on; if a block raises inside
-a batch, that batch is re-run variant by variant so the others still get their numbers.
+expression, e.g. ``K=20*eye(2),50*eye(2)``; commas inside brackets do not split; a solver
+setting is swept as ``simulation.step=0.001,0.002``), each combined with ``N`` draws of the
+``--random`` parameters (``fwdstep.sampling``: uniform, log-uniform or normal; random, Latin
+hypercube or Sobol designs; seeded).  ``--seed-parameter NAME`` gives every variant its own
+seed in the diagram parameter NAME (for noise blocks).  ``--set`` values apply to every
+variant.
+
+**Batches are exact.**  Variants run together in one batch (``fwdstep.compile_batch``) only
+when everything that could change their numbers other than the stacked block parameters is
+equal: the whole simulation settings object (``spec.simulation``, every field, including
+ones added later), the rest of the diagram spec (log, metrics, connections) and the blocks'
+structure signature (``fwdstep.compiler.structure_signature``: shapes, state sizes,
+non-numeric parameters, and everything a block computed in ``setup`` outside ``p``).
+Fixed-step solvers on the NumPy backend batch; any other solver or backend runs one variant
+per batch.  A variant that diverges is frozen and marked while the rest of its batch goes on;
+if a block raises inside a batch, that batch is re-run variant by variant.
+
+**Memory.**  A batch's size is bounded by what it really logs: the bytes of the logged error
+signal times its rows, plus the state buffers, per variant; ``--max-memory`` (default 1 GB)
+is shared by the batches running at once.  A sweep whose single variant needs more is refused
+with the numbers.
+
+**Parallel.**  Batches run on all local cores (``--workers N``, default: the cores this
+process may use; ``--workers 1`` runs in this process), or on a Dask cluster
+(``--scheduler tcp://HOST:PORT``; Python: ``client=``), see ``fwdstep.distributed``.
+
+**Nothing finished is lost.**  Each batch is written to ``OUTDIR/parts/`` atomically when it
+finishes; Ctrl-C or SIGTERM stops the sweep and keeps them (exit 130), and ``--resume`` re-runs
+only the variants that are not there yet.
 
 Writes ``OUTDIR/sweep.csv`` (one row per variant: the swept parameters, the batch, the
-status and the diagram's error metrics) and ``OUTDIR/sweep.png`` (each metric against
-each swept parameter, and |e|(t) of up to 8 variants).  Exit codes as ``fwdstep run``: 0 all
-variants ok, 2 bad input, 3 some diverged, 4 some raised, 130 interrupted (the rows run so
-far are written).
+status and the diagram's error metrics), ``OUTDIR/sweep.nc`` (the error signal of every
+variant, labelled: ``fwdstep.labelled``; not with ``--no-signals``) and ``OUTDIR/sweep.png``
+(each metric against each swept parameter, and |e|(t) of up to 8 variants).  Exit codes as
+``fwdstep run``: 0 all variants ok, 2 bad input, 3 some diverged, 4 some raised, 130
+interrupted.
 
 Python: ``run_sweep(path, grid={"ell": [1, 2, 3]}, ...)`` returns a ``SweepResult``.
 """
 from __future__ import annotations
 
 import contextlib
-import copy
 import csv
+import dataclasses
+import glob
 import io
-import itertools
 import json
+import math
 import os
+import re
+import shutil
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .compiler import compile_variants, instantiate_variants, structure_signature
+from .compiler import _value_key, compile_variants, instantiate_variants, structure_signature
+from .distributed import dask_client, local_cores, run_jobs
 from .errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
                      OutputError)
 from .result import atomic_write, error_metrics, safe_path
+from .sampling import (MAX_VARIANTS, parse_grid, parse_random, split_values,  # noqa: F401
+                       variant_seeds, variant_values)
 from .simulate import SimulationInterrupted, simulate
 
 CSV_FILE = "sweep.csv"
 FIGURE_FILE = "sweep.png"
+DATASET_FILE = "sweep.nc"
+PARTS_DIR = "parts"
 METRICS = ("final_abs_error", "tail_max_abs_error", "rms_error", "max_abs_error")
-#: Refuse sweeps with more variants than this (each variant is a diagram in memory).
-MAX_VARIANTS = 100_000
-#: Largest batch; a structure group with more variants runs in several batches.
+#: Largest batch; a group with more variants runs in several batches.
 MAX_BATCH = 512
-#: Largest recorded error signal per batch (bytes); larger batches are split.
-MAX_BATCH_LOG_BYTES = 400_000_000
+#: Default bound on the memory of the batches running at once (bytes).
+DEFAULT_MAX_MEMORY = 1_000_000_000
 #: How many variants' |e|(t) the figure overlays.
 MAX_TRACES = 8
 
@@ -80,6 +111,10 @@ class SweepResult:
     metric_signal: str | None
     wall_time: float = 0.0
     interrupted: bool = False
+    settings: dict = field(default_factory=dict)   # simulation settings of the first variant
+    parts: list = field(default_factory=list)      # in-memory batch outcomes (no outdir)
+    outdir: str | None = None                      # where the parts were written
+    keep_signals: bool = False                     # parts hold every variant's error signal
 
     def counts(self) -> dict:
         out: dict = {}
@@ -100,8 +135,24 @@ class SweepResult:
             rows.append(row)
         return rows
 
+    def to_pandas(self):
+        """The table as a pandas DataFrame indexed by variant (numbers as numbers)."""
+        import pandas as pd
+        frame = pd.DataFrame(self.rows()).set_index("variant")
+        for column in frame.columns:
+            converted = pd.to_numeric(frame[column].replace("", np.nan), errors="coerce")
+            if converted.notna().sum() == (frame[column] != "").sum():
+                frame[column] = converted
+        return frame
+
+    def to_xarray(self):
+        """The error signal of every variant as an xarray Dataset (``fwdstep.labelled``)."""
+        from .labelled import sweep_dataset
+        return sweep_dataset(self)
+
     def write(self, outdir: str, plots: bool = True) -> list:
-        """Write sweep.csv (and sweep.png) into ``outdir``; returns the paths written."""
+        """Write sweep.csv, sweep.nc (when signals were kept) and sweep.png into ``outdir``;
+        returns the paths written."""
         os.makedirs(outdir, exist_ok=True)
         rows = self.rows()
         buf = io.StringIO()
@@ -114,179 +165,173 @@ class SweepResult:
         path = safe_path(outdir, CSV_FILE)
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
         written = [path]
+        if self.has_signals():
+            from .labelled import write_dataset
+            written.append(write_dataset(self, safe_path(outdir, DATASET_FILE)))
         if plots and self.metric_signal is not None and any(v.metrics for v in self.variants):
             written.append(plot_sweep(self, outdir))
         return written
 
+    def has_signals(self) -> bool:
+        return self.keep_signals and any(v.status in ("ok", "diverged") for v in self.variants)
 
-# ---------------------------------------------------------------------------- parsing
-def split_values(text: str) -> list:
-    """'1,2,[3, 4],f(5,6)' -> ['1', '2', '[3, 4]', 'f(5,6)']: commas at bracket depth 0."""
-    parts, depth, current = [], 0, ""
-    for ch in text:
-        if ch in "([{":
-            depth += 1
-        elif ch in ")]}":
-            depth -= 1
-        if ch == "," and depth == 0:
-            parts.append(current)
-            current = ""
-        else:
-            current += ch
-    parts.append(current)
-    return [p.strip() for p in parts]
+    def iter_parts(self):
+        """Every finished batch's outcome (dict of arrays), from memory or from disk."""
+        yield from self.parts
+        if self.outdir is not None:
+            for path in sorted(glob.glob(os.path.join(self.outdir, PARTS_DIR, "*.npz"))):
+                with np.load(path, allow_pickle=False) as data:
+                    yield dict(data)
 
 
-def parse_grid(items: list) -> dict:
-    """``["ell=1,2,3", "K=20,50"]`` -> {"ell": [1, 2, 3], "K": [20, 50]} (values read like
-    ``--set`` values: numbers, lists, or expression strings)."""
-    from .spec import parse_override
-    grid: dict = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ConfigError(f"--grid '{item}' must have the form NAME=V1,V2,...")
-        name, raw = item.split("=", 1)
-        values = []
-        for part in split_values(raw):
-            if not part:
-                raise ConfigError(f"--grid '{item}' has an empty value")
-            values.append(parse_override(f"{name.strip()}={part}")[1])
-        name = name.strip()
-        if name in grid:
-            raise ConfigError(f"--grid {name} is given twice")
-        grid[name] = values
-    return grid
+# ---------------------------------------------------------------------------- planning
+@dataclass
+class BatchJob:
+    """One batch, with everything a worker needs (picklable: specs and blocks travel)."""
+    number: int
+    indices: list
+    specs: list
+    blocks: list
+    metric: str | None
+    keep_signals: bool
+    traces: frozenset
+    values: list                  # the swept values of each variant (for the parts)
 
 
-def parse_random(items: list) -> dict:
-    """``["alpha=1:5"]`` -> {"alpha": (1.0, 5.0)}."""
-    out: dict = {}
-    for item in items or []:
-        name, sep, raw = item.partition("=")
-        low, colon, high = raw.partition(":")
-        try:
-            bounds = (float(low), float(high))
-        except ValueError:
-            bounds = None
-        if not sep or not colon or bounds is None or not all(map(np.isfinite, bounds)):
-            raise ConfigError(f"--random '{item}' must have the form NAME=LOW:HIGH with two "
-                              "numbers")
-        if not bounds[0] <= bounds[1]:
-            raise ConfigError(f"--random '{item}': LOW must not exceed HIGH")
-        name = name.strip()
-        if name in out:
-            raise ConfigError(f"--random {name} is given twice")
-        out[name] = bounds
-    return out
+def settings_key(spec) -> tuple:
+    """Everything in a diagram spec that may change a variant's numbers besides its blocks:
+    every field of the spec (the simulation settings object whole, log, metrics, connections,
+    ...) except the parameters (which reach the numbers only through the blocks) and the
+    blocks themselves (``structure_signature``).  Fields are read, never listed, so settings
+    added later are included."""
+    return tuple((f.name, _value_key(_plain(getattr(spec, f.name))))
+                 for f in dataclasses.fields(spec) if f.name not in ("parameters", "blocks"))
 
 
-def variant_values(grid: dict, random: dict, samples: int, seed: int) -> list:
-    """The swept values of every variant: grid product x random samples."""
-    both = set(grid) & set(random)
-    if both:
-        raise ConfigError(f"parameter '{sorted(both)[0]}' is both in --grid and --random")
-    if random and samples < 1:
-        raise ConfigError("--random needs --samples N (N >= 1)")
-    if samples and not random:
-        raise ConfigError("--samples needs at least one --random NAME=LOW:HIGH")
-    if not grid and not random:
-        raise ConfigError("nothing to sweep: give --grid NAME=V1,V2,... or --random "
-                          "NAME=LOW:HIGH --samples N")
-    n_grid = int(np.prod([len(v) for v in grid.values()], dtype=np.int64)) if grid else 1
-    total = n_grid * max(samples, 1)
-    if total > MAX_VARIANTS:
-        raise ConfigError(f"the sweep has {total} variants; the limit is {MAX_VARIANTS}")
-    rng = np.random.default_rng(seed)
-    draws = {name: rng.uniform(low, high, size=max(samples, 1)) if random else None
-             for name, (low, high) in random.items()}
-    out = []
-    for combo in itertools.product(*grid.values()) if grid else [()]:
-        base = dict(zip(grid, combo))
-        for k in range(max(samples, 1)):
-            values = dict(base)
-            values.update({name: float(draws[name][k]) for name in random})
-            out.append(values)
-    return out
+def _plain(value):
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
-# ---------------------------------------------------------------------------- running
-def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
-              samples: int = 0, seed: int = 0, overrides: dict | None = None,
-              sequential: bool = False, progress=None) -> SweepResult:
-    """Run every variant of the diagram at ``path``; see the module docstring.
-
-    ``grid`` maps parameter names to lists of values; ``random`` maps names to (low, high);
-    ``overrides`` are fixed for all variants.  ``progress(text)`` is told about each batch.
-    Raises ``DiagramError`` for a bad diagram or bad sweep options (nothing is run then)."""
-    from .spec import load_spec
-    grid, random, overrides = dict(grid or {}), dict(random or {}), dict(overrides or {})
-    wall0 = time.perf_counter()
-    all_values = variant_values(grid, random, samples, seed)
-    names = list(grid) + list(random)
-    documents: dict = {}            # each YAML file parsed once for all variants
-    base = load_spec(path, overrides, cache=documents)
-    for name in names:
-        if name not in base.parameters:
-            raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
-                              f"'{name}'; parameters are: {', '.join(base.parameters)}",
-                              file=base.file)
-        if name in overrides:
-            raise ConfigError(f"parameter '{name}' is both swept and set with --set")
-    specs, blocks, made = [], [], {}
-    for values in all_values:
-        try:
-            specs.append(load_spec(path, {**overrides, **values}, cache=documents))
-            blocks.extend(instantiate_variants(specs[-1:], made))
-        except DiagramError as exc:
-            shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
-            raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
-                            line=exc.line, block=exc.block, port=exc.port) from None
-    metric = base.metrics.get("error")
-    variants = [Variant(i, values) for i, values in enumerate(all_values)]
-    groups: dict = {}
-    for i, blks in enumerate(blocks):
-        groups.setdefault(structure_signature(blks), []).append(i)
-    batches = _batches(list(groups.values()), specs[0], metric, sequential)
-    trace_ids = set(np.unique(np.linspace(0, len(variants) - 1,
-                                          min(MAX_TRACES, len(variants))).astype(int)).tolist())
-    result = SweepResult(diagram=path, names=names, variants=variants, batches=[],
-                         traces={}, metric_signal=metric)
-    try:
-        for number, members in enumerate(batches):
-            if progress is not None:
-                shown = _describe(variants[members[0]].values, names)
-                more = ("s", ", ...") if len(members) > 1 else ("", "")
-                progress(f"batch {number + 1}/{len(batches)}: {len(members)} variant{more[0]} "
-                         f"({shown}{more[1]})")
-            result.batches.append((len(members), _describe(variants[members[0]].values, names)))
-            _run_batch(number, members, specs, blocks, variants, metric, trace_ids, result)
-    except KeyboardInterrupt:
-        result.interrupted = True
-        for v in variants:
-            if v.status == "not run":
-                v.status = "interrupted"
-    result.wall_time = time.perf_counter() - wall0
-    return result
+def batchable(spec) -> bool:
+    """Whether variants of this spec may share a batch: fixed-step Runge-Kutta solvers on the
+    NumPy backend (a compiled backend runs single variants; an adaptive solver would choose
+    one step for the whole batch, which is not each variant's own run)."""
+    from .solvers import TABLEAUX
+    cfg = spec.simulation
+    return cfg.solver in TABLEAUX and getattr(cfg, "backend", "numpy") == "numpy"
 
 
-def _batches(groups: list, spec, metric, sequential: bool) -> list:
-    if sequential:
-        return [[i] for members in groups for i in members]
-    n_rows = spec.simulation.n_steps // spec.simulation.log_every + 2
-    per_variant = n_rows * 8 * 64          # a generous bound on the error signal's size
-    limit = max(1, min(MAX_BATCH, MAX_BATCH_LOG_BYTES // per_variant))
-    out = []
-    for members in groups:
-        out.extend(members[k:k + limit] for k in range(0, len(members), limit))
-    return out
-
-
-def _run_batch(number, members, specs, blocks, variants, metric, trace_ids, result) -> None:
-    d = compile_variants([specs[i] for i in members], [blocks[i] for i in members])
+def variant_bytes(spec, blocks, metric: str | None) -> tuple:
+    """(bytes one variant needs in a batch, what they are for the message): the logged error
+    signal (8 bytes x components x rows) plus the state buffers of the solver stages."""
+    cfg = spec.simulation
+    rows = cfg.n_steps // cfg.log_every + 2
+    size = 0
     if metric is not None:
-        d.logged = [d.resolve(metric)]
-    else:
-        d.logged = []
+        owner, _, port = spec.aliases.get(metric, metric).rpartition(".")
+        for b in blocks:
+            if b.name == owner and port in b.outputs:
+                size = b.outputs[port].size
+    n_states = sum(b.n_states for b in blocks)
+    logged = 8 * size * rows
+    work = 8 * n_states * 12
+    return logged + work, (f"{_mb(logged + work)} ({metric}: {size} value(s) x {rows} rows"
+                           f" logged, plus {n_states} states)" if metric else
+                           f"{_mb(work)} ({n_states} states)")
+
+
+def parse_size(text) -> int:
+    """'2GB', '500MB', '1.5e9' -> bytes."""
+    if isinstance(text, (int, float)):
+        return int(text)
+    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([kKmMgGtT]?)i?[bB]?\s*", str(text))
+    try:
+        number = float(m.group(1)) if m else float("nan")
+    except ValueError:
+        number = float("nan")
+    if not m or not math.isfinite(number) or number <= 0:
+        raise ConfigError(f"--max-memory '{text}' must be a size like 2GB, 500MB or 1e9")
+    scale = {"": 1, "k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}[m.group(2).lower()]
+    return int(number * scale)
+
+
+def plan_batches(specs, blocks, metric, *, sequential=False, workers=1,
+                 max_memory=DEFAULT_MAX_MEMORY, batch_size=None) -> list:
+    """Lists of variant indices, one per batch (see the module docstring)."""
+    groups: dict = {}
+    for i, (spec, blks) in enumerate(zip(specs, blocks)):
+        if sequential or not batchable(spec):
+            groups[("alone", i)] = [i]
+            continue
+        groups.setdefault((settings_key(spec), structure_signature(blks)), []).append(i)
+    per_batch = max_memory // max(1, workers)
+    out = []
+    for members in groups.values():
+        need, what = variant_bytes(specs[members[0]], blocks[members[0]], metric)
+        if need > per_batch:
+            raise ConfigError(
+                f"one variant needs {what}, more than the memory allowed per batch: "
+                f"{_mb(per_batch)} (--max-memory {_mb(max_memory)} over {max(1, workers)} "
+                f"worker(s)); raise --max-memory, use fewer --workers or log less often "
+                f"(simulation.log_every)")
+        limit = min(MAX_BATCH, per_batch // max(need, 1), batch_size or MAX_BATCH)
+        if workers > 1 and batch_size is None:           # at least one batch per worker
+            limit = min(limit, math.ceil(len(members) / workers))
+        limit = max(1, limit)
+        n = math.ceil(len(members) / limit)              # balanced sizes
+        out.extend(list(chunk) for chunk in np.array_split(members, n))
+    return [[int(i) for i in chunk] for chunk in out]
+
+
+def _mb(n: float) -> str:
+    return f"{n / 1e9:.3g} GB" if n >= 1e9 else f"{n / 1e6:.3g} MB"
+
+
+# ---------------------------------------------------------------------------- one batch
+def run_job(job: BatchJob) -> dict:
+    """Run one batch (in this process or a worker); returns its outcome as a dict of arrays
+    (what ``OUTDIR/parts/*.npz`` holds)."""
+    outcomes = _run_members(job, list(range(len(job.indices))))
+    n = len(job.indices)
+    part = {"indices": np.asarray(job.indices, dtype=np.int64),
+            "batch": np.full(n, job.number, dtype=np.int64),
+            "status": np.array([o["status"] for o in outcomes], dtype=str),
+            "message": np.array([o["message"] for o in outcomes], dtype=str),
+            "diverged_at": np.array([np.nan if o["diverged_at"] is None else o["diverged_at"]
+                                     for o in outcomes]),
+            "metrics": np.array([[o["metrics"].get(m, np.nan) for m in METRICS]
+                                 for o in outcomes], dtype=float).reshape(n, len(METRICS)),
+            "values": np.array([json.dumps(_jsonable(v)) for v in job.values], dtype=str)}
+    signals = [o for o in outcomes if o.get("e") is not None]
+    if signals:
+        longest = max(signals, key=lambda o: len(o["t"]))
+        t = longest["t"]
+        shape = longest["e"].shape[1:]
+        e = np.full((len(t), n) + shape, np.nan)
+        for k, o in enumerate(outcomes):
+            if o.get("e") is not None:
+                e[:len(o["t"]), k] = o["e"]
+        part.update(t=t, e=e, has_signal=np.array([o.get("e") is not None for o in outcomes]))
+    return part
+
+
+def _run_members(job: BatchJob, members: list) -> list:
+    """Outcome dicts for ``members`` (positions in the job) run as one batch."""
+    specs = [job.specs[k] for k in members]
+    try:
+        d = compile_variants(specs, [job.blocks[k] for k in members])
+    except DiagramError as exc:        # a variant's wiring does not hold (e.g. a new port)
+        if len(members) > 1:
+            return [o for k in members for o in _run_members(job, [k])]
+        return [{"status": "error", "message": str(exc), "diverged_at": None, "metrics": {}}]
+    metric = job.metric
+    d.logged = [d.resolve(metric)] if metric is not None else []
     try:
         r = simulate(d)
     except DivergenceError as exc:
@@ -295,33 +340,208 @@ def _run_batch(number, members, specs, blocks, variants, metric, trace_ids, resu
         raise KeyboardInterrupt from None
     except BlockRuntimeError as exc:
         if len(members) > 1:                 # find which variants fail: one by one
-            for i in members:
-                _run_batch(number, [i], specs, blocks, variants, metric, trace_ids, result)
-            return
-        v = variants[members[0]]
-        v.batch, v.status, v.message = number, "error", str(exc)
-        return
-    tail = specs[members[0]].metrics.get("tail", 0.2)
-    for b, i in enumerate(members):
-        v = variants[i]
-        v.batch = number
+            return [o for k in members for o in _run_members(job, [k])]
+        return [{"status": "error", "message": str(exc), "diverged_at": None, "metrics": {}}]
+    tail = specs[0].metrics.get("tail", 0.2)
+    out = []
+    for b, k in enumerate(members):
+        o = {"status": "ok", "message": "", "diverged_at": None, "metrics": {}}
         died = r.diverged_at[b] if r.diverged_at is not None else np.nan
         if np.isfinite(died):
-            v.status, v.diverged_at = "diverged", float(died)
-            v.message = f"diverged at t = {died:.6g}"
-        else:
-            v.status = "ok"
-        if metric is None:
-            continue
-        e = r.variant(b)[d.resolve(metric)]
-        t = r.t
-        if v.status == "diverged":
-            keep = t < died
+            o.update(status="diverged", diverged_at=float(died),
+                     message=f"diverged at t = {died:.6g}")
+        if metric is not None:
+            e, t = r.variant(b)[d.resolve(metric)], r.t
+            if o["status"] == "diverged":
+                keep = t < died
+                t, e = t[keep], e[keep]
+            else:
+                o["metrics"] = error_metrics(t, e, tail)
+            if job.keep_signals or job.indices[k] in job.traces:
+                o.update(t=np.array(t), e=np.array(e))
+        out.append(o)
+    return out
+
+
+# ---------------------------------------------------------------------------- running
+def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
+              samples: int = 0, seed: int = 0, overrides: dict | None = None,
+              sequential: bool = False, progress=None, *, design: str = "random",
+              seed_parameter: str | None = None, workers: int | None = None,
+              client=None, scheduler: str | None = None,
+              max_memory=DEFAULT_MAX_MEMORY, batch_size: int | None = None,
+              outdir: str | None = None, resume: bool = False,
+              keep_signals: bool = True, variants: list | None = None) -> SweepResult:
+    """Run every variant of the diagram at ``path``; see the module docstring.
+
+    ``grid`` maps parameter names to lists of values; ``random`` maps names to
+    ``fwdstep.sampling.Distribution`` or (low, high) for uniform; ``overrides`` are fixed for
+    all variants.  ``workers`` local processes (default: every local core), or ``client`` (a
+    ``dask.distributed.Client``) / ``scheduler`` (its address).  With ``outdir`` each
+    finished batch is written to ``outdir/parts`` at once and ``resume=True`` skips the
+    variants found there.  ``variants`` (instead of grid/random) lists the variants
+    explicitly, one dict of parameter values each (a missing name keeps the diagram's value).  ``progress(text)`` is told about each finished batch.
+    Raises ``DiagramError`` for a bad diagram or bad sweep options (nothing is run then)."""
+    from .spec import load_spec
+    grid, random, overrides = dict(grid or {}), dict(random or {}), dict(overrides or {})
+    wall0 = time.perf_counter()
+    if variants is not None:
+        if grid or random:
+            raise ConfigError("give either variants or grid/random, not both")
+        all_values = [dict(v) for v in variants]
+        names = list(dict.fromkeys(k for v in all_values for k in v))
+    else:
+        all_values = variant_values(grid, random, samples, seed, design)
+        names = list(grid) + list(random)
+    if seed_parameter is not None:
+        if seed_parameter in names:
+            raise ConfigError(f"--seed-parameter {seed_parameter} is also swept")
+        for values, s in zip(all_values, variant_seeds(len(all_values), seed)):
+            values[seed_parameter] = s
+        names.append(seed_parameter)
+    documents: dict = {}            # each YAML file parsed once for all variants
+    base = load_spec(path, overrides, cache=documents)
+    for name in names:
+        if name not in base.parameters and "." not in name:   # paths: load_spec checks them
+            raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
+                              f"'{name}'; parameters are: {', '.join(base.parameters)}",
+                              file=base.file)
+        if name in overrides:
+            raise ConfigError(f"parameter '{name}' is both swept and set with --set")
+    specs, blocks, made = [], [], {}
+    for values in all_values:
+        try:
+            spec = load_spec(path, {**overrides, **values}, cache=documents)
+            blocks.extend(instantiate_variants([spec], made))
+        except DiagramError as exc:
+            shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
+            raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
+                            line=exc.line, block=exc.block, port=exc.port) from None
+        specs.append(spec)
+    metric = base.metrics.get("error")
+    table = [Variant(i, values) for i, values in enumerate(all_values)]
+    if client is None and scheduler is not None:
+        client = dask_client(scheduler)
+    if workers is None:
+        workers = local_cores()
+    concurrent = _client_workers(client) if client is not None else max(1, int(workers))
+    batches = plan_batches(specs, blocks, metric, sequential=sequential, workers=concurrent,
+                           max_memory=parse_size(max_memory), batch_size=batch_size)
+    trace_ids = frozenset(np.unique(np.linspace(0, len(table) - 1, min(
+        MAX_TRACES, len(table))).astype(int)).tolist())
+    result = SweepResult(diagram=path, names=names, variants=table, batches=[],
+                         traces={}, metric_signal=metric,
+                         settings=_plain(base.simulation), outdir=outdir,
+                         keep_signals=keep_signals and metric is not None)
+    done = _resume(result, outdir) if resume else set()
+    if outdir is not None and not resume:
+        parts = os.path.join(outdir, PARTS_DIR)
+        if os.path.isdir(parts):
+            shutil.rmtree(parts)
+    jobs = []
+    for members in batches:
+        todo = [i for i in members if i not in done]
+        if todo:
+            jobs.append(BatchJob(len(jobs), todo, [specs[i] for i in todo],
+                                 [blocks[i] for i in todo], metric, keep_signals, trace_ids,
+                                 [all_values[i] for i in todo]))
+    if done:
+        first = max((v.batch for v in table if v.index in done), default=-1) + 1
+        for job in jobs:
+            job.number += first
+    stream = run_jobs(run_job, jobs, workers=concurrent, client=client)
+    try:
+        for finished, (job, part) in enumerate(stream, 1):
+            _store(result, part, outdir)
+            description = _describe(table[job.indices[0]].values, names)
+            result.batches.append((len(job.indices), description))
+            if progress is not None:
+                more = ("s", ", ...") if len(job.indices) > 1 else ("", "")
+                progress(f"batch {finished}/{len(jobs)} done: {len(job.indices)} "
+                         f"variant{more[0]} ({description}{more[1]})")
+    except KeyboardInterrupt:
+        stream.close()
+        result.interrupted = True
+        for v in table:
+            if v.status == "not run":
+                v.status = "interrupted"
+    result.wall_time = time.perf_counter() - wall0
+    return result
+
+
+def _client_workers(client) -> int:
+    try:
+        return max(1, sum(client.nthreads().values()))
+    except Exception:  # noqa: BLE001 - an unusual client: assume one worker
+        return 1
+
+
+def _store(result: SweepResult, part: dict, outdir: str | None) -> None:
+    """Take a finished batch into the table (and the traces); write it to disk first."""
+    if outdir is not None:
+        directory = os.path.join(outdir, PARTS_DIR)
+        os.makedirs(directory, exist_ok=True)
+        path = safe_path(directory, f"variants-{int(part['indices'][0]):06d}.npz")
+        atomic_write(path, lambda fh: np.savez(fh, **part), binary=True)
+    else:
+        result.parts.append(part)
+    _absorb(result, part)
+
+
+def _absorb(result: SweepResult, part: dict) -> None:
+    for k, i in enumerate(part["indices"].tolist()):
+        v = result.variants[i]
+        v.batch = int(part["batch"][k])
+        v.status = str(part["status"][k])
+        v.message = str(part["message"][k])
+        died = float(part["diverged_at"][k])
+        v.diverged_at = None if np.isnan(died) else died
+        v.metrics = ({m: float(x) for m, x in zip(METRICS, part["metrics"][k])}
+                     if v.status == "ok" and result.metric_signal is not None else {})
+        if "e" in part and part["has_signal"][k] and i in _trace_set(result):
+            t = part["t"]
+            e = part["e"][:, k]
+            keep = np.isfinite(e.reshape(len(t), -1)).all(axis=1)
             t, e = t[keep], e[keep]
-        else:
-            v.metrics = error_metrics(t, e, tail)
-        if i in trace_ids and len(t):
-            result.traces[i] = (t.copy(), np.sqrt(np.sum(e.reshape(len(t), -1) ** 2, axis=1)))
+            if len(t):
+                result.traces[i] = (t.copy(), np.sqrt(np.sum(e.reshape(len(t), -1) ** 2,
+                                                             axis=1)))
+
+
+def _trace_set(result: SweepResult) -> set:
+    n = len(result.variants)
+    return set(np.unique(np.linspace(0, n - 1, min(MAX_TRACES, n)).astype(int)).tolist())
+
+
+def _resume(result: SweepResult, outdir: str | None) -> set:
+    """Read the finished batches in ``outdir/parts``; check they are this sweep's."""
+    if outdir is None:
+        raise ConfigError("--resume needs the output directory of the interrupted sweep (-o)")
+    done: set = set()
+    for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                part = {k: data[k] for k in data.files if k != "e"}
+        except (OSError, ValueError, KeyError) as exc:
+            raise OutputError(f"{path} cannot be read ({exc}); delete it to re-run its "
+                              "variants") from None
+        for k, i in enumerate(part["indices"].tolist()):
+            mine = json.dumps(_jsonable(result.variants[i].values)) \
+                if i < len(result.variants) else None
+            if mine != str(part["values"][k]):
+                raise ConfigError(
+                    f"{outdir} holds a different sweep: its variant {i} has "
+                    f"{part['values'][k]}, this sweep's has {mine}; use another -o or --force "
+                    "to start again")
+        _absorb(result, part)
+        done.update(part["indices"].tolist())
+        result.batches.append((len(part["indices"]), "resumed"))
+    return done
+
+
+def _jsonable(values: dict) -> dict:
+    return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, np.generic)) else v)
+            for k, v in values.items()}
 
 
 def _describe(values: dict, names: list) -> str:
@@ -365,13 +585,15 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
             x = np.array([labels.index(_text(r)) for r in raw], dtype=float)
             ax.set_xticks(range(len(labels)), labels, fontsize=7)
         others = [n for n in result.names if n != name]
-        for key, (label, marker) in _series(ok, others).items():
+        series = _series(ok, others)
+        for key, (label, marker) in series.items():
             sel = [k for k, v in enumerate(ok) if _describe(v.values, others) == key]
             order = np.argsort(x[sel], kind="stable")
             color = None
             for metric, style in (("tail_max_abs_error", "-"), ("final_abs_error", ":")):
                 y = np.array([ok[k].metrics[metric] for k in sel])
-                line, = ax.plot(x[sel][order], y[order], style, marker=marker, ms=4, lw=1,
+                line, = ax.plot(x[sel][order], y[order], style if len(series) <= 10 else "",
+                                marker=marker, ms=4 if len(series) <= 10 else 2, lw=1,
                                 color=color,
                                 label=f"{'max |e| over tail' if style == '-' else 'final |e|'}"
                                       f"{', ' + label if label else ''}")
@@ -418,6 +640,22 @@ def _series(ok: list, others: list) -> dict:
 
 
 # ---------------------------------------------------------------------------- command
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a batch system's kill) stops the sweep like Ctrl-C: finished batches kept."""
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:                   # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def cmd_sweep(args) -> int:
     """``fwdstep sweep``: see the module docstring for the options and exit codes."""
     from .commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK,
@@ -425,18 +663,31 @@ def cmd_sweep(args) -> int:
     outdir = args.outdir or os.path.join(
         "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
     quiet = getattr(args, "quiet", False)
+    resume = getattr(args, "resume", False)
     try:
         grid = parse_grid(args.grid)
         random = parse_random(args.random)
         overrides = _overrides(args.set)
-        _check_outdir(outdir, args.force)
+        _check_outdir(outdir, args.force or resume)
         progress = None if quiet else (lambda text: print(f"  {text}", file=sys.stderr,
                                                           flush=True))
-        result = run_sweep(args.diagram, grid, random, args.samples, args.seed, overrides,
-                           sequential=args.sequential, progress=progress)
+        with _terminate_as_interrupt():
+            result = run_sweep(
+                args.diagram, grid, random, args.samples, args.seed, overrides,
+                sequential=args.sequential, progress=progress,
+                design=getattr(args, "design", "random"),
+                seed_parameter=getattr(args, "seed_parameter", None),
+                workers=getattr(args, "workers", None),
+                scheduler=getattr(args, "scheduler", None),
+                max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
+                batch_size=getattr(args, "batch_size", None), outdir=outdir, resume=resume,
+                keep_signals=not getattr(args, "no_signals", False))
     except (DiagramError, OutputError) as exc:
         print(f"fwdstep: {exc}", file=sys.stderr)
         return EXIT_INPUT
+    except KeyboardInterrupt:            # before any batch ran: nothing to keep
+        print("fwdstep: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     try:
         written = result.write(outdir)
     except (OSError, OutputError) as exc:
@@ -449,6 +700,9 @@ def cmd_sweep(args) -> int:
               f"{'es' if len(result.batches) != 1 else ''}: {summary}; "
               f"{result.wall_time:.2f} s wall")
         print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
+        if result.interrupted:
+            print(f"interrupted: finished batches are in {os.path.join(outdir, PARTS_DIR)}; "
+                  "run again with --resume to finish the rest")
     if result.interrupted:
         return EXIT_INTERRUPTED
     if counts.get("error"):
@@ -461,11 +715,12 @@ def cmd_sweep(args) -> int:
 def _check_outdir(outdir: str, force: bool) -> None:
     if os.path.exists(outdir) and not os.path.isdir(outdir):
         raise OutputError(f"output directory {outdir} exists and is not a directory")
-    existing = os.path.join(outdir, CSV_FILE)
-    if os.path.exists(existing) and not force:
-        raise OutputError(f"{existing} already exists; pass --force to overwrite it or -o to "
-                          "choose another directory")
+    for name in (CSV_FILE, PARTS_DIR):
+        existing = os.path.join(outdir, name)
+        if os.path.exists(existing) and not force:
+            raise OutputError(f"{existing} already exists; pass --resume to finish that sweep, "
+                              "--force to overwrite it or -o to choose another directory")
 
 
 __all__ = ["run_sweep", "SweepResult", "Variant", "cmd_sweep", "parse_grid", "parse_random",
-           "variant_values"]
+           "variant_values", "plan_batches", "settings_key", "parse_size"]

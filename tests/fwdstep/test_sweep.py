@@ -14,6 +14,7 @@ import pytest
 
 import cli
 from fwdstep.errors import ConfigError
+from fwdstep.sampling import Distribution
 from fwdstep.sweep import (METRICS, parse_grid, parse_random, run_sweep, split_values,
                            variant_values)
 
@@ -62,8 +63,8 @@ def _table(result):
 def test_batched_sweep_equals_sequential_sweep(path):
     grid = {"ell": [1, 2], "K": [20, -120, 50]}            # K = -120 diverges for ell = 2
     random = {"gamma": (0.5, 3.0)}
-    batched = run_sweep(path, grid, random, samples=2, seed=7)
-    alone = run_sweep(path, grid, random, samples=2, seed=7, sequential=True)
+    batched = run_sweep(path, grid, random, samples=2, seed=7, workers=1)
+    alone = run_sweep(path, grid, random, samples=2, seed=7, sequential=True, workers=1)
     assert len(batched.variants) == 12 and len(batched.batches) == 2      # one per ell
     assert len(alone.batches) == 12
     a, b = _table(batched), _table(alone)
@@ -114,7 +115,7 @@ def test_a_raising_variant_does_not_spoil_its_batch(path, monkeypatch):
         return original(self, t, x, u)
 
     monkeypatch.setattr(AdaptationLaw, "derivative", fragile)
-    result = run_sweep(path, {"gamma": [2, 5, 3]})
+    result = run_sweep(path, {"gamma": [2, 5, 3]}, workers=1)
     assert [v.status for v in result.variants] == ["ok", "error", "ok"]
     assert "broken adaptation" in result.variants[1].message
     assert all(result.variants[i].metrics for i in (0, 2))
@@ -142,7 +143,7 @@ def test_value_parsing():
     assert split_values("1, 2,[3, 4],diag([1,2])") == ["1", "2", "[3, 4]", "diag([1,2])"]
     assert parse_grid(["ell=1,2", "K=20*eye(2),[[1,0],[0,1]]"]) == {
         "ell": [1, 2], "K": ["20*eye(2)", [[1, 0], [0, 1]]]}
-    assert parse_random(["a=1:2.5"]) == {"a": (1.0, 2.5)}
+    assert parse_random(["a=1:2.5"]) == {"a": Distribution("uniform", 1.0, 2.5)}
     with pytest.raises(ConfigError, match="LOW must not exceed HIGH"):
         parse_random(["a=3:1"])
     values = variant_values({"a": [1, 2, 3]}, {"b": (0.0, 1.0)}, samples=4, seed=3)
@@ -151,3 +152,159 @@ def test_value_parsing():
     assert [v["a"] for v in values[:5]] == [1, 1, 1, 1, 2]
     with pytest.raises(ConfigError, match="both in --grid and --random"):
         variant_values({"a": [1]}, {"a": (0.0, 1.0)}, samples=1, seed=0)
+
+
+# ---------------------------------------------------------------------------- exactness
+EVERY_KIND = """
+parameters:
+  ell: 2                   # int, changes the state size
+  alpha: 4                 # float
+  gamma: 2                 # float
+  K: 20*eye(2)             # array
+  q0: [0.1, -0.1]          # array (initial state)
+  nseed: 3                 # int, stacked (noise seed per variant)
+  npsd: 1e-6               # array
+  lv: -0.5                 # array entry
+  M: [[0.1, 0.3], [0.0, 0.2]]
+blocks:
+  qd:    {type: Sine, amplitude: [0.3, 0.2], frequency: [1.0, 1.5], derivatives: 2}
+  arm:   {type: TwoLinkArm, q0: q0}
+  ref:   {type: ReferenceDynamics, variant: eq2, ell: ell, n: 2, alpha: alpha}
+  e:     {type: Sum, signs: "+-", shape: [2]}
+  s:     {type: Sum, signs: "+-", shape: [2]}
+  Y:     {type: Regressor}
+  Yth:   {type: Product, a_shape: [2, 4], b_shape: [4]}
+  Ks:    {type: Gain, gain: K}
+  lut:   {type: Lookup1D, breakpoints: [-0.2, 0, 0.2], values: [lv, 0, 0.4],
+          extrapolation: clamp, n: 2}
+  M:     {type: Constant, value: M}
+  P:     {type: Product, a_shape: [2, 2], b_shape: [2], transpose_a: false}
+  noise: {type: WhiteNoise, n: 2, psd: npsd, sample_time: 0.01, seed: nseed}
+  tau:   {type: Sum, signs: "+-++", shape: [2]}
+  adapt: {type: AdaptationLaw, regressor_shape: [2, 4], gamma: gamma}
+connections:
+  - arm.q -> ref.q, Y.q, e.u1, lut.u
+  - arm.qdot -> ref.qdot, Y.qdot, s.u1
+  - qd.y -> ref.q_d, e.u2
+  - ref.z -> s.u2, Y.zeta
+  - ref.zdot -> Y.zetad
+  - Y.Y -> Yth.a, adapt.W
+  - adapt.theta_hat -> Yth.b
+  - s.y -> Ks.u, adapt.e
+  - M.y -> P.a
+  - lut.y -> P.b
+  - Yth.y -> tau.u1
+  - Ks.y -> tau.u2
+  - P.y -> tau.u3
+  - noise.y -> tau.u4
+  - tau.y -> arm.tau
+simulation: {t_final: 0.4, step: 0.002, solver: rk4, log_every: 2, bound: 1e3}
+log: [e.y]
+metrics: {error: e.y}
+"""
+
+# every simulation setting and every kind of block parameter, each next to variants that
+# differ from it in that one setting only; K = -150 diverges (beside ones that do not)
+EVERY_VARIANT = [
+    {},
+    {"K": "-150*eye(2)"},
+    {"simulation.t_final": 0.3},
+    {"simulation.step": 0.004},
+    {"simulation.solver": "heun"},
+    {"simulation.log_every": 5},
+    {"simulation.bound": 0.3},
+    {"ell": 1},
+    {"ref.kappa": 2.0},              # a block parameter set by its path
+    {"alpha": 3.0},
+    {"gamma": 0.5},
+    {"K": "35*eye(2)"},
+    {"q0": [0.15, 0.05]},
+    {"tau.signs": "+--+"},           # str, stacked (Sum keeps signs per variant)
+    {"P.transpose_a": True},         # bool, stacked (Product keeps transposes per variant)
+    {"lut.extrapolation": "linear"},  # choice, not stacked
+    {"nseed": 11},
+    {"npsd": 4e-6},
+    {"lv": -0.1},
+    {"M": [[0.0, 0.3], [0.2, 0.2]]},
+    {"K": "-150*eye(2)", "simulation.bound": 50.0},
+]
+
+
+def _every_variant(path):
+    """EVERY_VARIANT, plus an adaptive solver when this fwdstep has one."""
+    from fwdstep.errors import ConfigError
+    from fwdstep.spec import load_spec
+    out = list(EVERY_VARIANT)
+    try:
+        load_spec(path, {"simulation.solver": "dop853"})
+        out.append({"simulation.solver": "dop853"})
+    except ConfigError:
+        pass
+    return out
+
+
+def _alone(path, values):
+    import fwdstep
+    from fwdstep.compiler import compile_spec
+    from fwdstep.errors import DivergenceError
+    from fwdstep.spec import load_spec
+    d = compile_spec(load_spec(path, values))
+    d.logged = [d.resolve("e.y")]
+    try:
+        return fwdstep.simulate(d)
+    except DivergenceError as exc:
+        return exc.result
+
+
+def test_every_variant_gets_its_own_numbers(tmp_path):
+    """Item 1 of issue 13: a batch never mixes variants that differ in anything that changes
+    the numbers.  Each variant's error signal and metrics equal its own one-by-one run."""
+    path = tmp_path / "every.yaml"
+    path.write_text(EVERY_KIND)
+    every = _every_variant(str(path))
+    result = run_sweep(str(path), variants=every, workers=1)
+    signals = {}
+    for part in result.parts:
+        for k, i in enumerate(part["indices"]):
+            signals[int(i)] = (part["t"], part["e"][:, k])
+    assert len(result.batches) < len(every)          # some variants did share a batch
+    statuses = {}
+    for v in result.variants:
+        alone = _alone(str(path), every[v.index])
+        statuses[v.index] = v.status
+        t, e = signals[v.index]
+        rows = len(alone.t)
+        np.testing.assert_array_equal(t[:rows], alone.t, err_msg=str(v.values))
+        ref = alone["e.y"]
+        scale = max(1.0, float(np.nanmax(np.abs(ref))))
+        np.testing.assert_allclose(e[:rows], ref, rtol=0, atol=1e-12 * scale,
+                                   err_msg=str(v.values))
+        assert np.all(np.isnan(e[rows:])), v.values       # nothing after the end of its run
+        if alone.status == "ok":
+            assert v.status == "ok", v.values
+            for m, value in alone.metrics().items():
+                assert v.metrics[m] == pytest.approx(value, rel=1e-12, abs=1e-15), (v.values, m)
+        else:
+            assert v.status == "diverged" and alone.status == "diverged", v.values
+            assert v.diverged_at == pytest.approx(float(alone.diverged_at[0]), abs=1e-12)
+    assert statuses[1] == "diverged" and statuses[0] == "ok" and statuses[6] == "diverged"
+    assert statuses[20] == "diverged"
+    # the settings really changed the runs (a sweep that ignored them would fail above)
+    assert len(signals[2][0]) < len(signals[0][0]) and len(signals[5][0]) < len(signals[0][0])
+
+
+def test_the_reported_examples(capsys, tmp_path):
+    """The two commands of the issue: t_final and step now change the numbers."""
+    out = tmp_path / "a"
+    assert cli.main(["sweep", "diagrams/theorem1.yaml", "--grid", "t_final=1,2", "-o",
+                     str(out), "-q", "--no-signals", "--set", "step=0.004"]) == 0
+    with open(out / "sweep.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows[0]["final_abs_error"] != rows[1]["final_abs_error"]
+    out = tmp_path / "b"
+    assert cli.main(["sweep", "diagrams/theorem1.yaml", "--grid", "step=0.002,0.05", "-o",
+                     str(out), "-q", "--set", "t_final=0.5"]) == 3
+    with open(out / "sweep.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["ok", "diverged"]
+    assert float(rows[1]["diverged_at"]) == pytest.approx(0.1)
