@@ -1,11 +1,11 @@
 """The ``fwdstep`` command: argument parsing only; all work happens in ``fwdstep.commands``."""
 from __future__ import annotations
 
-import argparse
 import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import argparse                  # imported here: main() handles signals from its first line
     p = argparse.ArgumentParser(
         prog="fwdstep",
         description="Block-diagram simulation of forwardstepping control of robot manipulators.")
@@ -73,6 +73,51 @@ def _results_command(args):
 
 
 def main(argv=None) -> int:
+    """Run one command; its exit code.  SIGINT, SIGTERM and SIGHUP are handled from here on,
+    also while fwdstep is still being imported: exit 128 + signal (130, 143, 129), one line,
+    partial results kept (fwdstep.signals, fwdstep.outputs); never a traceback."""
+    early = _hold_signals()                 # while numpy & co. import (they would turn an
+    try:                                    # interrupt into an ImportError traceback)
+        from fwdstep import signals
+    finally:
+        arrived = early()
+    if arrived:
+        from fwdstep.signals import Interrupted
+        print(f"fwdstep: {Interrupted(arrived).reason}", file=sys.stderr)
+        return 128 + arrived
+    try:
+        with signals.handled():
+            return _main(argv)
+    except KeyboardInterrupt as exc:        # also fwdstep.signals.Interrupted
+        reason = getattr(exc, "reason", "interrupted by the user")
+        print(f"fwdstep: {reason}", file=sys.stderr)
+        return 128 + int(getattr(exc, "signum", 2))
+    except MemoryError:
+        print("fwdstep: out of memory; the diagram asks for more than this machine has "
+              "(see 'When something is wrong' in the README)", file=sys.stderr)
+        return 2
+
+
+def _hold_signals():
+    """Remember SIGINT/SIGTERM/SIGHUP instead of acting on them; returns a function that
+    restores the previous handlers and gives the first signal that arrived (or 0)."""
+    import signal
+    import threading
+    arrived: list = []
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: 0
+    previous = {}
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        previous[signum] = signal.signal(signum, lambda n, frame: arrived.append(n))
+
+    def release() -> int:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        return arrived[0] if arrived else 0
+    return release
+
+
+def _main(argv=None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -94,9 +139,10 @@ def main(argv=None) -> int:
         if args.command == "sweep":
             from fwdstep.sweep import cmd_sweep
             return cmd_sweep(args)
-    except KeyboardInterrupt:
-        print("fwdstep: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        reason = getattr(exc, "reason", "interrupted by the user")
+        print(f"fwdstep: {reason}", file=sys.stderr)
+        return 128 + int(getattr(exc, "signum", 2))
     except BrokenPipeError:         # `fwdstep blocks | head`: the reader left; not an error
         import os
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -105,7 +151,8 @@ def main(argv=None) -> int:
     except Exception as exc:  # noqa: BLE001 - the diagram errors are handled inside commands
         from fwdstep.errors import FwdstepError
         if isinstance(exc, FwdstepError):
-            print(f"fwdstep: {exc}", file=sys.stderr)
+            from fwdstep.errors import one_line
+            print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
             return 2
         raise
     return 2

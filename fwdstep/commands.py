@@ -2,8 +2,10 @@
 
 Every verb returns an exit code:
   0 success; 2 the diagram, an option or the output directory is wrong (one line on stderr);
-  3 the simulation diverged; 4 a block raised at run time; 130 interrupted (Ctrl-C).
-Partial results are written before a non-zero exit whenever anything was computed.
+  3 the simulation diverged; 4 a block raised at run time; 128 + signal number when
+  interrupted: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (``fwdstep.signals``).
+Partial results are written before a non-zero exit whenever anything was computed, as one
+transaction into a locked output directory (``fwdstep.outputs``).
 """
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import os
 import sys
 
 from .errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
-                     OutputError, SimulationError, one_line)
+                     OutputError, SimulationError, one_line, printable)
 from .result import RESULT_FILE, SUMMARY_FILE
 
 EXIT_OK, EXIT_INPUT, EXIT_DIVERGED, EXIT_BLOCK, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
@@ -35,13 +37,23 @@ def default_outdir(path: str) -> str:
 
 
 def check_outdir(outdir: str, force: bool) -> None:
-    if os.path.exists(outdir) and not os.path.isdir(outdir):
-        raise OutputError(f"output directory {outdir} exists and is not a directory")
-    existing = [f for f in (RESULT_FILE, SUMMARY_FILE)
-                if os.path.exists(os.path.join(outdir, f))]
-    if existing and not force:
-        raise OutputError(f"{os.path.join(outdir, existing[0])} already exists; pass --force to "
-                          "overwrite it or -o to choose another directory")
+    """Refuse ``outdir`` before any work if results already exist there (kept for callers
+    that check early; ``OutputDir`` checks again, under its lock)."""
+    from .outputs import OutputDir
+    OutputDir(outdir, force, expected=[RESULT_FILE, SUMMARY_FILE])._check_target()
+    OutputDir(outdir, force, expected=[RESULT_FILE, SUMMARY_FILE])._check_existing()
+
+
+def run_files(d, plots: bool, formats=("png",)) -> list:
+    """Names of the files ``fwdstep run`` writes for compiled diagram ``d``."""
+    names = [RESULT_FILE, SUMMARY_FILE]
+    if plots:
+        from .plotting import figure_specs
+        from .result import Result
+        import numpy as np
+        names += [f"{fig}.{fmt}" for fig in figure_specs(Result(np.empty(0), {}, diagram=d))
+                  for fmt in formats]
+    return names
 
 
 def _progress(frac: float) -> None:
@@ -53,26 +65,43 @@ def cmd_validate(path: str, sets=None) -> int:
     try:
         d = load_diagram(path, _overrides(sets))
     except DiagramError as exc:
-        _err(str(exc))
+        for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
+            _err(str(each))
         return EXIT_INPUT
-    print(f"{path}: ok — {len(d.schedule)} blocks, {d.n_states} states, "
+    print(f"{printable(path)}: ok — {len(d.schedule)} blocks, {d.n_states} states, "
           f"{len(d.signal_index)} signals, {d.spec.simulation.n_steps} steps of "
           f"{d.spec.simulation.step:g} s with {d.spec.simulation.solver}")
     return EXIT_OK
 
 
 def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False,
-            plots: bool = True, quiet: bool = False, backend: str | None = None) -> int:
+            plots: bool = True, quiet: bool = False, backend: str | None = None,
+            formats=("png",)) -> int:
+    """``fwdstep run``: the output directory is claimed (locked, checked) before the
+    simulation starts and written as one transaction (``fwdstep.outputs``) after it, with
+    partial results when it diverged, failed or was interrupted (SIGINT/SIGTERM/SIGHUP)."""
     from .compiler import load_diagram
-    from .simulate import simulate
+    from .outputs import OutputDir
     outdir = outdir or default_outdir(path)
     try:
         d = load_diagram(path, _overrides(sets))
-        check_outdir(outdir, force)
+        out = OutputDir(outdir, force, expected=run_files(d, plots, formats))
+        out.__enter__()
     except (DiagramError, OutputError) as exc:
-        for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
-            _err(str(each))
+        _err(str(exc))
         return EXIT_INPUT
+    try:
+        return _run_into(out, d, plots, quiet, backend, formats)
+    except OutputError as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    finally:
+        out.__exit__(None, None, None)
+
+
+def _run_into(out, d, plots: bool, quiet: bool, backend, formats) -> int:
+    from .simulate import simulate
+    from . import signals
     code = EXIT_OK
     progress = None if quiet else _progress
     try:
@@ -81,19 +110,24 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
         result = exc.result
         _err(str(exc))
         code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
-                EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else EXIT_INTERRUPTED)
+                EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else
+                signals.exit_code(exc))
         if result is None:
             return code
     try:
-        written = result.save(outdir, force=True)
-        if plots and code in (EXIT_OK, EXIT_DIVERGED, EXIT_INTERRUPTED):
-            from .plotting import plot_result
-            written += plot_result(result, outdir)
-    except (OSError, FwdstepError) as exc:
-        _err(f"cannot write results to {outdir}: {exc}")
+        with signals.deferred():                  # a signal now: the results still land
+            written = result.write_files(out.dir)
+            if plots and len(result.t) and code != EXIT_BLOCK:
+                from .plotting import plot_result
+                written += plot_result(result, out.dir, formats=formats)
+            written = out.commit()
+    except OSError as exc:
+        _err(f"cannot write results to {out.requested}: {exc}")
         return EXIT_INPUT
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    late = signals.pending()
+    if late is not None:
+        _err(f"{late.reason} while the results were written; they are complete")
+        code = code or signals.exit_code(late)
     if not quiet:
         m = result.metrics()
         reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
@@ -103,7 +137,7 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
                      f"{int(100 * d.spec.metrics.get('tail', 0.2))}% = "
                      f"{m['tail_max_abs_error']:.3e}, RMS = {m['rms_error']:.3e}")
         print(line)
-        print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
+        print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
     return code
 
 

@@ -9,8 +9,27 @@ from __future__ import annotations
 
 
 def one_line(text: str) -> str:
-    """Messages are one line: newlines (from multi-line YAML values) become spaces."""
-    return " ".join(text.splitlines()) if "\n" in text or "\r" in text else text
+    """Messages are one printable line: newlines (from multi-line YAML values) become
+    spaces, and every other control, format or escape character is shown escaped
+    (``printable``), so no file name or value can repaint the terminal."""
+    if "\n" in text or "\r" in text:
+        text = " ".join(text.splitlines())
+    return printable(text)
+
+
+def printable(text) -> str:
+    """``text`` with every character that is not printable (C0/C1 controls such as ESC and
+    BEL, DEL, bidi and zero-width format characters, line separators, U+FFFE, surrogates)
+    written as a Python escape (``\\x1b``, ``\\u202e``); other text is unchanged."""
+    text = str(text)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else _escape(c) for c in text)
+
+
+def _escape(c: str) -> str:
+    n = ord(c)
+    return f"\\x{n:02x}" if n < 0x100 else f"\\u{n:04x}" if n < 0x10000 else f"\\U{n:08x}"
 
 
 class FwdstepError(Exception):

@@ -7,7 +7,7 @@ import tempfile
 
 import numpy as np
 
-from .errors import OutputError
+from .errors import OutputError, printable
 
 RESULT_FILE = "result.npz"
 SUMMARY_FILE = "summary.json"
@@ -98,8 +98,19 @@ class Result:
             **_figure_summary(self),
         }
 
-    def save(self, outdir: str, force: bool = False) -> list:
-        """Write ``result.npz`` and ``summary.json`` atomically into ``outdir``."""
+    def save(self, outdir: str, force: bool = True) -> list:
+        """Write ``result.npz``, ``summary.json`` and ``manifest.json`` into ``outdir`` as one
+        transaction (``fwdstep.outputs.OutputDir``: locked, staged, one rename); replaces
+        results fwdstep wrote there before (``force=False`` refuses to), never another file
+        or a symbolic link.  Returns the paths written."""
+        from .outputs import OutputDir
+        with OutputDir(outdir, force=force, expected=[RESULT_FILE, SUMMARY_FILE]) as out:
+            self.write_files(out.dir)
+            return out.commit()
+
+    def write_files(self, outdir: str) -> list:
+        """Write ``result.npz`` and ``summary.json`` atomically into the directory ``outdir``
+        (the staging directory of an ``OutputDir``; ``save`` is the transaction)."""
         os.makedirs(outdir, exist_ok=True)
         arrays = {"t": self.t}
         for k, v in self._signals.items():
@@ -214,10 +225,13 @@ def safe_path(outdir: str, name: str) -> str:
     """``outdir/name``, refusing any name that would leave ``outdir``."""
     if os.path.basename(name) != name or name in ("", ".", "..") or "\x00" in name:
         raise OutputError(f"refusing to write '{name}': not a plain file name inside {outdir}")
+    if not name.isprintable():
+        raise OutputError(f"refusing to write '{printable(name)}': control characters in a file "
+                          "name")
     base = os.path.realpath(outdir)
-    path = os.path.realpath(os.path.join(base, name))
-    if os.path.dirname(path) != base:
-        raise OutputError(f"refusing to write '{name}': it resolves outside {outdir}")
+    path = os.path.join(base, name)
+    if os.path.islink(path):           # never written through: atomic_write would follow it
+        raise OutputError(f"refusing to write '{name}': it is a symbolic link in {outdir}")
     return path
 
 

@@ -240,9 +240,10 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                         apply_updates(d, end.updates, max(t, end.hi), x, ev_outputs, ev_sig)
                     prog.final_ts(t, max(t, end.hi), row)
                 row += 1
-        except KeyboardInterrupt:
-            status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
+        except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
+            status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
+            error.signum = getattr(exc, "signum", 2)
         except SimulationError as exc:    # a discrete algebraic loop: already says where
             status, message, error = "error", str(exc), exc
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
@@ -251,6 +252,10 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             status, message = "error", str(error)
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
                    n, t, wall0)
+
+
+def _reason(exc) -> str:
+    return getattr(exc, "reason", "interrupted by the user")
 
 
 def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
@@ -301,9 +306,10 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                 prog.final(t, row)
                 row += 1
                 n = n_steps - 1
-        except KeyboardInterrupt:
-            status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
+        except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
+            status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
+            error.signum = getattr(exc, "signum", 2)
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
             error = _locate_failure(d, t, x[None].copy(), exc)
             error.__cause__ = exc
@@ -388,14 +394,12 @@ def _first_non_finite_output(d: CompiledDiagram, t_log, logs, row, alive, died_a
     variant = f" (variant {b})" if B > 1 else ""
     message = (f"simulation diverged at t = {t_log[r]:.6g}: {who} output '{port}'{where} = "
                f"{flat[k]:.6g} is not finite{variant}; results up to that time are kept")
-    if B == 1:
-        return r + 1, "diverged", message, block
     for r_b, b_b, _, _ in found:
         died_at[b_b] = t_log[r_b]
         alive[b_b] = False
     if alive.any():
         return None
-    return row, "diverged", message, block
+    return (r + 1 if B == 1 else row), "diverged", message, block
 
 
 def _divergence_message(d: CompiledDiagram, x, bound, t) -> str:

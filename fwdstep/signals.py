@@ -1,0 +1,85 @@
+"""SIGINT, SIGTERM and SIGHUP end a run the same way: partial results kept, status
+"interrupted", exit code 128 + the signal number (130, 143, 129).
+
+``handled()`` (used by ``cli.main``) turns the three signals into ``Interrupted``, a
+``KeyboardInterrupt`` subclass, so every place that already keeps partial results on Ctrl-C
+(the run loop, sweeps) does the same for ``timeout``, a batch scheduler or a closed terminal.
+``deferred()`` holds them back while results are being written: a signal that arrives then
+is remembered (``pending()``) and the write completes.
+"""
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+#: what each signal is called in messages
+REASONS = {signal.SIGINT: "interrupted by the user", signal.SIGTERM: "terminated (SIGTERM)",
+           signal.SIGHUP: "hung up (SIGHUP)"}
+HANDLED = tuple(REASONS)
+
+_state = {"deferring": 0, "pending": None}
+
+
+class Interrupted(KeyboardInterrupt):
+    """A handled signal arrived; ``signum`` says which."""
+
+    def __init__(self, signum: int = signal.SIGINT):
+        self.signum = signum
+        super().__init__(REASONS.get(signum, f"signal {signum}"))
+
+    @property
+    def reason(self) -> str:
+        return REASONS.get(self.signum, f"signal {self.signum}")
+
+
+def exit_code(exc: BaseException | None) -> int:
+    """128 + the signal number of an interruption (130 for a plain KeyboardInterrupt)."""
+    return 128 + int(getattr(exc, "signum", signal.SIGINT))
+
+
+def reason(exc: BaseException | None) -> str:
+    return getattr(exc, "reason", REASONS[signal.SIGINT])
+
+
+def _handler(signum, frame):
+    if _state["deferring"]:
+        _state["pending"] = _state["pending"] or signum
+        return
+    raise Interrupted(signum)
+
+
+@contextlib.contextmanager
+def handled():
+    """Install the handlers for the duration of a command (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {}
+    for signum in HANDLED:
+        try:
+            previous[signum] = signal.signal(signum, _handler)
+        except (OSError, ValueError):        # not available on this platform
+            pass
+    _state["pending"] = None
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+@contextlib.contextmanager
+def deferred():
+    """Hold handled signals back while results are written (the write always completes)."""
+    _state["deferring"] += 1
+    try:
+        yield
+    finally:
+        _state["deferring"] -= 1
+
+
+def pending() -> Interrupted | None:
+    """The interruption that arrived during ``deferred()`` (then forgotten), or None."""
+    signum, _state["pending"] = _state["pending"], None
+    return Interrupted(signum) if signum else None

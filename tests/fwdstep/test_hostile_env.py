@@ -1,0 +1,254 @@
+"""Hostile environments: the output directory as a transaction (lock, one rename, manifest,
+no symlinks followed, foreign files never replaced), SIGTERM/SIGHUP/early Ctrl-C, printable
+messages and budgets checked before allocation."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cli
+import fwdstep
+from fwdstep.errors import OutputError
+from fwdstep.outputs import MANIFEST_FILE, OutputDir, owned_files
+
+REPO = Path(__file__).resolve().parents[2]
+
+DIAGRAM = """\
+blocks:
+  src: {type: Constant, value: [1, 2]}
+  int: {type: Integrator, shape: [2]}
+connections:
+  - src.y -> int.u
+simulation: {t_final: 0.1, step: 0.01}
+plots:
+  integral: [int.y]
+"""
+
+# a run long enough to be signalled while it simulates
+LONG = """\
+blocks:
+  src: {type: Sine, amplitude: [1, 2], frequency: [1, 1]}
+  int: {type: Integrator, shape: [2]}
+connections:
+  - src.y -> int.u
+simulation: {t_final: 5000, step: 1e-4, log_every: 1000}
+"""
+
+
+def write(tmp_path, text: str, name: str = "d.yaml") -> str:
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def listing(directory) -> list:
+    return sorted(os.listdir(directory))
+
+
+# ------------------------------------------------------------------ transaction
+def test_manifest_lists_exactly_what_was_written_with_hashes(tmp_path):
+    import hashlib
+    outdir = tmp_path / "out"
+    assert cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q"]) == 0
+    manifest = json.loads((outdir / MANIFEST_FILE).read_text())
+    assert set(manifest["files"]) == {"result.npz", "summary.json", "integral.png"}
+    for name, info in manifest["files"].items():
+        data = (outdir / name).read_bytes()
+        assert info == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+    # nothing left beside the directory: no lock, no staging directory
+    assert listing(tmp_path) == ["d.yaml", "out"]
+
+
+def test_second_run_into_a_held_directory_is_refused_with_the_holder(tmp_path, capsys):
+    outdir = tmp_path / "new"
+    with OutputDir(str(outdir), force=False, expected=["result.npz"]):
+        code = cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert re.fullmatch(
+        rf"fwdstep: output directory {re.escape(str(outdir))} is being written by another "
+        rf"fwdstep run \(pid {os.getpid()} on [^,]+, started [0-9T:-]+: .*\); wait for it to "
+        r"finish or choose another directory with -o\n", err), err
+    assert not outdir.exists()                 # the holder never committed: nothing there
+
+
+def test_two_processes_into_one_new_directory_exactly_one_wins(tmp_path):
+    outdir = tmp_path / "shared"
+    path = write(tmp_path, LONG.replace("t_final: 5000", "t_final: 3"))
+    procs = [subprocess.Popen([sys.executable, str(REPO / "cli.py"), "run", path, "-o",
+                               str(outdir), "-q", "--no-plots"], stderr=subprocess.PIPE,
+                              text=True) for _ in range(2)]
+    results = sorted((p.wait(timeout=120), p.stderr.read()) for p in procs)
+    assert [code for code, _ in results] == [0, 2], results
+    assert "is being written by another fwdstep run (pid" in results[1][1]
+    assert listing(outdir) == ["manifest.json", "result.npz", "summary.json"]
+
+
+def test_figure_never_replaces_a_file_fwdstep_did_not_write(tmp_path, capsys):
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    (outdir / "integral.png").write_bytes(b"my own picture")
+    for extra in ([], ["--force"]):
+        code = cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q", *extra])
+        assert code == 2
+        assert capsys.readouterr().err == (
+            f"fwdstep: refusing to replace {outdir}/integral.png: it is a file that fwdstep did "
+            "not write (move it away or choose another directory with -o)\n")
+    assert listing(outdir) == ["integral.png"]
+    assert (outdir / "integral.png").read_bytes() == b"my own picture"
+
+
+def test_force_replaces_its_own_figure_and_keeps_the_users_files(tmp_path, capsys):
+    outdir = tmp_path / "out"
+    path = write(tmp_path, DIAGRAM)
+    assert cli.main(["run", path, "-o", str(outdir), "-q"]) == 0
+    (outdir / "notes.txt").write_text("mine")
+    old_png = (outdir / "integral.png").stat().st_ino
+    assert cli.main(["run", path, "-o", str(outdir), "-q", "--force"]) == 0
+    assert listing(outdir) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
+                               "summary.json"]
+    assert (outdir / "notes.txt").read_text() == "mine"
+    assert (outdir / "integral.png").stat().st_ino != old_png
+    assert "notes.txt" not in json.loads((outdir / MANIFEST_FILE).read_text())["files"]
+
+
+def test_force_does_not_write_through_a_planted_symlink(tmp_path, capsys):
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious")
+    (outdir / "result.npz").symlink_to(victim)
+    code = cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q", "--force"])
+    assert code == 2
+    assert capsys.readouterr().err == (
+        f"fwdstep: refusing to replace {outdir}/result.npz: it is a symbolic link that fwdstep "
+        "did not write (move it away or choose another directory with -o)\n")
+    assert victim.read_text() == "precious" and (outdir / "result.npz").is_symlink()
+
+
+def test_a_listed_name_that_became_a_symlink_is_not_ours(tmp_path):
+    outdir = tmp_path / "out"
+    fwdstep.simulate(fwdstep.load_diagram(write(tmp_path, DIAGRAM))).save(str(outdir))
+    assert owned_files(str(outdir)) == {"result.npz", "summary.json"}
+    os.unlink(outdir / "summary.json")
+    (outdir / "summary.json").symlink_to(tmp_path / "d.yaml")
+    assert owned_files(str(outdir)) == {"result.npz"}
+
+
+def test_kill_between_the_renames_never_mixes_old_and_new(tmp_path, monkeypatch):
+    # the swap renames the old directory aside, then the new one into place: a kill after
+    # the first rename leaves no directory (and the complete old one aside), never a mix
+    outdir = tmp_path / "out"
+    d = fwdstep.load_diagram(write(tmp_path, DIAGRAM))
+    fwdstep.simulate(d).save(str(outdir))
+    old = {n: (outdir / n).read_bytes() for n in ("result.npz", "summary.json")}
+    real_rename = os.rename
+    calls = []
+
+    def dying_rename(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise KeyboardInterrupt          # the process is killed here
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", dying_rename)
+    with pytest.raises(KeyboardInterrupt):
+        fwdstep.simulate(d).save(str(outdir))
+    monkeypatch.setattr(os, "rename", real_rename)
+    assert not outdir.exists()
+    aside = Path(calls[0][1])
+    assert {n: (aside / n).read_bytes() for n in old} == old
+
+
+# ------------------------------------------------------------------ signals
+@pytest.mark.parametrize("signum, code, reason", [
+    (signal.SIGTERM, 143, r"terminated \(SIGTERM\)"),
+    (signal.SIGHUP, 129, r"hung up \(SIGHUP\)"),
+    (signal.SIGINT, 130, "interrupted by the user")])
+def test_sigterm_and_sighup_keep_partial_results(tmp_path, signum, code, reason):
+    outdir = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, str(REPO / "cli.py"), "run",
+                             write(tmp_path, LONG), "-o", str(outdir), "--no-plots"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first = proc.stderr.readline()      # the first progress line: the loop is running
+        assert first.strip().endswith("% simulated"), first
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    assert re.fullmatch(rf"fwdstep: {reason} at t = [0-9.]+\n", err), err
+    summary = json.loads((outdir / "summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    with np.load(outdir / "result.npz") as data:
+        t = data["t"]
+        assert len(t) >= 2 and summary["t_reached"] == pytest.approx(t[-1])
+        np.testing.assert_allclose(data["int.y"][:, 0], 1 - np.cos(t), atol=1e-9)
+
+
+def test_early_ctrl_c_is_one_line_never_a_traceback(tmp_path):
+    # Ctrl-C pressed again and again from the start: those before main() are ignored here
+    # (Python's own start-up is not fwdstep's), the first one inside main() (while numpy and
+    # fwdstep still import) must end the run with one line and 130, never a traceback
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+            "print('ready', flush=True); import cli; "
+            "sys.exit(cli.main(['run', %r, '-o', %r, '-q', '--no-plots']))"
+            % (write(tmp_path, LONG), str(tmp_path / "out")))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=REPO)
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        for _ in range(600):
+            if proc.poll() is not None:
+                break
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.02)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert "Traceback" not in err, err
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert re.fullmatch(r"fwdstep: interrupted by the user( at t = [0-9.]+)?\n", err), err
+
+
+def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
+    class Finder:
+        def find_spec(self, name, path=None, target=None):
+            if name == "fwdstep.commands":
+                raise KeyboardInterrupt
+            return None
+
+    monkeypatch.delitem(sys.modules, "fwdstep.commands")
+    monkeypatch.delattr(fwdstep, "commands", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [Finder()] + sys.meta_path)
+    assert cli.main(["blocks"]) == 130
+    assert capsys.readouterr().err == "fwdstep: interrupted by the user\n"
+
+
+def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, monkeypatch):
+    from fwdstep import result as result_module
+    outdir = tmp_path / "out"
+    real = result_module.Result.write_files
+
+    def write_then_signal(self, directory):
+        paths = real(self, directory)
+        os.kill(os.getpid(), signal.SIGTERM)     # arrives in the middle of the transaction
+        return paths
+
+    monkeypatch.setattr(result_module.Result, "write_files", write_then_signal)
+    code = cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q", "--no-plots"])
+    assert code == 143
+    assert capsys.readouterr().err == ("fwdstep: terminated (SIGTERM) while the results were "
+                                       "written; they are complete\n")
+    assert listing(outdir) == ["manifest.json", "result.npz", "summary.json"]
+    assert json.loads((outdir / "summary.json").read_text())["status"] == "ok"
