@@ -62,6 +62,16 @@ def _add_results_commands(sub, run) -> None:
     gr.add_argument("--engine", choices=("auto", "dot", "matplotlib"), default="auto",
                     help="layout: graphviz dot (default when installed) or matplotlib")
     gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "
+                                         "differences and a metrics table")
+    cmp.add_argument("runs", nargs="+", metavar="RUN_DIR",
+                     help="run directories (of fwdstep run); DIR@K is variant K of a batch")
+    cmp.add_argument("-o", "--outdir", default=None,
+                     help="where compare.png and compare.csv go (default: out/compare)")
+    cmp.add_argument("--signal", action="append", default=[], metavar="BLOCK.PORT",
+                     help="signal to compare (repeatable; default: those of the figures)")
+    cmp.add_argument("--figure-format", action="append", default=None,
+                     choices=("png", "pdf", "svg"), help="figure format (repeatable)")
 
 
 def _results_command(args):
@@ -69,6 +79,9 @@ def _results_command(args):
     if args.command == "graph":
         from fwdstep.drawing import cmd_graph
         return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine)
+    if args.command == "compare":
+        from fwdstep.compare import cmd_compare
+        return cmd_compare(args.runs, args.outdir, args.signal, args.figure_format)
     return None
 
 

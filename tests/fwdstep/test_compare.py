@@ -1,0 +1,119 @@
+"""fwdstep compare: differences against the analytic solution, other time grids, batches,
+the metrics table, and the command's files and refusals."""
+import csv
+
+import numpy as np
+import pytest
+
+import fwdstep
+from cli import main
+from fwdstep.compare import compare
+from fwdstep.errors import OutputError
+from fwdstep.result import load_result
+from fwdstep.spec import load_spec
+
+DECAY = """
+parameters: {{g: -1.0}}
+blocks:
+  x: {{type: Integrator, shape: [2], initial: [1.0, -2.0]}}
+  k: {{type: Gain, gain: g, shape: [2]}}
+connections:
+  - x.y -> k.u
+  - k.y -> x.u
+simulation: {{t_final: {t_final}, step: {step}}}
+log:
+  - {{signal: x.y, label: '$x$', unit: m, components: [first, second]}}
+plots:
+  decay: [x.y]
+metrics: {{error: x.y}}
+"""
+X0 = np.array([1.0, -2.0])
+
+
+def _saved(tmp_path, name, g, t_final=2, step=0.01):
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(DECAY.format(t_final=t_final, step=step))
+    out = tmp_path / name
+    assert main(["run", str(path), "--set", f"g={g}", "-o", str(out), "-q", "--no-plots"]) == 0
+    return str(out), None
+
+
+def test_difference_matches_the_analytic_solutions(tmp_path):
+    a, _ = _saved(tmp_path, "a", -1.0)
+    b, _ = _saved(tmp_path, "b", -2.0)
+    c = compare([a, b])
+    assert c.signals == ["x.y"]
+    t = load_result(a).t
+    exact = np.outer(np.exp(-2 * t) - np.exp(-t), X0)
+    assert np.max(np.abs(c.differences["x.y"][0] - exact)) < 1e-8
+    row_b = c.table[1]
+    assert row_b["run"] == "b" and row_b["status"] == "ok"
+    assert row_b["max |diff x.y|"] == pytest.approx(np.max(np.abs(exact)), rel=1e-6)
+    assert row_b["final_abs_error"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4), rel=1e-6)
+    # the figure: overlay then difference, named by the labels of the diagram
+    over, diff = c.figure.axes[:2]
+    assert over.get_ylabel() == "$x$ [m]" and diff.get_ylabel() == "Δ $x$ [m]"
+    assert [t.get_text() for t in diff.get_legend().get_texts()] == ["b − a, first",
+                                                                   "b − a, second"]
+
+
+def test_other_time_grids_are_interpolated_never_extrapolated(tmp_path):
+    a, _ = _saved(tmp_path, "a", -1.0, t_final=2, step=0.01)
+    b, _ = _saved(tmp_path, "b", -1.0, t_final=1, step=0.005)
+    d = compare([a, b]).differences["x.y"][0]
+    t = load_result(a).t
+    inside = t <= 1.0 + 1e-12
+    # same dynamics: only the interpolation error of a smooth curve (h = 0.005) is left
+    assert np.max(np.abs(d[inside])) < 1e-4
+    assert np.isnan(d[~inside]).all()
+
+
+def test_batch_variants_compare_as_runs(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text(DECAY.format(t_final=1, step=0.01))
+    specs = [load_spec(str(path), {"g": g}) for g in (-1.0, -3.0)]
+    r = fwdstep.simulate(fwdstep.compile_batch(specs))
+    out = tmp_path / "batch"
+    out.mkdir()
+    r.write_files(str(out))
+    c = compare([str(out)])
+    assert [run.label for run in c.runs] == ["batch@0", "batch@1"]
+    t = r.t
+    exact = np.outer(np.exp(-3 * t) - np.exp(-t), X0)
+    assert np.max(np.abs(c.differences["x.y"][0] - exact)) < 1e-7
+    one = compare([f"{out}@1", f"{out}@0"])
+    assert np.allclose(one.differences["x.y"][0], -c.differences["x.y"][0])
+
+
+def test_compare_command_writes_table_and_figure(tmp_path, capsys):
+    a, _ = _saved(tmp_path, "a", -1.0)
+    b, _ = _saved(tmp_path, "b", -2.0)
+    out = tmp_path / "cmp"
+    capsys.readouterr()
+    assert main(["compare", a, b, "-o", str(out), "--figure-format", "svg"]) == 0
+    rows = list(csv.DictReader(open(out / "compare.csv")))
+    assert [r["run"] for r in rows] == ["a", "b"]
+    assert float(rows[0]["max |diff x.y|"]) == 0.0
+    assert b"<svg" in (out / "compare.svg").read_bytes()[:2000]
+    assert "wrote" in capsys.readouterr().out
+    # a compare.csv that fwdstep did not write is never replaced
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "compare.csv").write_text("mine")
+    assert main(["compare", a, b, "-o", str(foreign)]) == 2
+    assert (foreign / "compare.csv").read_text() == "mine"
+    assert "fwdstep did not write" in capsys.readouterr().err
+
+
+def test_compare_refusals(tmp_path, capsys):
+    a, _ = _saved(tmp_path, "a", -1.0)
+    assert main(["compare", a]) == 2
+    assert capsys.readouterr().err == ("fwdstep: compare needs at least two runs (or a batch "
+                                       "with two variants)\n")
+    assert main(["compare", a, str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fwdstep: {tmp_path / 'nothing'} holds no saved run") and \
+        err.count("\n") == 1
+    with pytest.raises(OutputError) as info:
+        compare([a, a], signals=["k.z"])
+    assert str(info.value).startswith("signal k.z is not in a (1); its signals are: ")
