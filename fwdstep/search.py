@@ -25,17 +25,14 @@ LIBRARY_PREFIX = "lib/"
 
 
 def shipped_library() -> str | None:
-    """The folder of the shipped subsystem library (``lib/...`` names), or None."""
-    try:
-        from importlib.resources import files
-        folder = str(files("fwdstep.library"))
+    """The folder of the shipped subsystem library (``lib/...`` names), or None: the installed
+    package data ``fwdstep/library`` or, in a source checkout, ``diagrams/lib``."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    for folder in (os.path.join(here, "library"),
+                   os.path.join(os.path.dirname(here), "diagrams", "lib")):
         if os.path.isdir(folder):
             return folder
-    except (ImportError, ModuleNotFoundError, TypeError, ValueError):
-        pass
-    source = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                          "diagrams", "lib")
-    return source if os.path.isdir(source) else None
+    return None
 
 
 def user_path() -> list:
@@ -86,6 +83,7 @@ class SearchPath:
         given += ([self.library] if self.library else []) + self.user
         self.roots_real = [os.path.realpath(r) for r in given]
         self.roots_text = [os.path.normpath(os.path.abspath(r)) for r in given] + self.roots_real
+        self.documents: dict = {}     # realpath -> parsed document, filled by the loader
 
     def allowed(self, path: str) -> bool:
         """``path`` lies inside one of the roots, both as written (no ``..`` out of it) and

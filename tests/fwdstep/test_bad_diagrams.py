@@ -152,6 +152,19 @@ CASES = [
      "block 'src' parameter 'value': the list is not a rectangular array of numbers"),
     ("shape_mismatch", ShapeError, 5,
      'connection src.y -> int.u: shapes differ: src.y is (3,), int.u is (2,)'),
+    # H15 (issue 15/16): budgets on the specification and confined includes
+    ("spec_block_fanout", ConfigError, 2,
+     "the diagram would have 160000 blocks after subsystem expansion; the limit is 10000"),
+    ("spec_include_absolute", ConfigError, 2,
+     "subsystem 'plant': file '/etc/passwd' must be a relative path with '/' (found next to "
+     "the diagram, in fwdstep's library as lib/NAME, or in FWDSTEP_PATH)"),
+    ("spec_include_outside", ConfigError, 2,
+     "subsystem 'plant': file '../../../../../../etc/passwd' leaves the diagram's folder; "
+     "subsystems come from the diagram's folder tree, fwdstep's library (lib/NAME) or a folder "
+     "in FWDSTEP_PATH"),
+    ("spec_parameter_memory", ExpressionError, 23,
+     "parameter 'p20': the diagram's evaluated parameters would hold 21000000 numbers; the "
+     "limit is 20000000 (152 MiB)"),
     ("step_infinite", ConfigError, 5,
      'simulation.step must be a finite number, got inf'),
     ("step_larger_than_t_final", ConfigError, 3,

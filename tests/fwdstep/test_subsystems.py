@@ -512,3 +512,135 @@ blocks:
     os.symlink(me, os.path.join(str(tmp_path), "link.yaml"))
     with pytest.raises(ConfigError, match="includes itself: me.yaml -> link.yaml$"):
         load_spec(me)
+
+
+# ----------------------------------------------------------------- --set paths (issue 15)
+from pathlib import Path       # noqa: E402
+
+import cli                     # noqa: E402
+from fwdstep.errors import DiagramError  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _edited_copy(tmp_path, diagram: str, edits: list, plant_edits: list = ()) -> str:
+    """A copy of a shipped diagram in a temporary folder, with text edits; lib/ comes from
+    the shipped library except lib/plant.yaml when the plant itself is edited."""
+    text = (REPO / "diagrams" / diagram).read_text()
+    for old, new in edits:
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    if plant_edits:
+        plant = (REPO / "diagrams" / "lib" / "plant.yaml").read_text()
+        for old, new in plant_edits:
+            assert plant.count(old) == 1, old
+            plant = plant.replace(old, new)
+        (tmp_path / "lib").mkdir()
+        (tmp_path / "lib" / "plant.yaml").write_text(plant)
+    path = tmp_path / diagram
+    path.write_text(text)
+    return str(path)
+
+
+SCENARIOS = {
+    # Theorem 6: phase of q_d, disturbance phases, qdot(0), initial q_d*, a plant mass, theta_hat(0)
+    "theorem6": (
+        {"qd.phase": [0.3, -0.4], "dist.phase": [0.5, 2.0], "plant.qdot0": [0.1, -0.1],
+         "qds.q_d0": [0.32, -0.18], "plant.arm.me": 2.2, "adapt.theta0": [1, 0.5, 0.5, 0.2],
+         "simulation.t_final": 0.2},
+        [("derivatives: 2}", "derivatives: 2, phase: [0.3, -0.4]}"),
+         ("dist_phase: [0.0, 1.0]", "dist_phase: [0.5, 2.0]"),
+         ("parameters: {q0: q0, gravity: gravity}}",
+          "parameters: {q0: q0, gravity: gravity, qdot0: [0.1, -0.1]}}"),
+         ("q_d0: q0,", "q_d0: [0.32, -0.18],"),
+         ("theta0: [0, 0, 0, 0]", "theta0: [1, 0.5, 0.5, 0.2]"),
+         ("t_final: 60", "t_final: 0.2")],
+        [("qdot0: qdot0, gravity: gravity}", "qdot0: qdot0, gravity: gravity, me: 2.2}")]),
+    # Theorem 9: chi_1'(0), the initial q_d* and qdot_d*, disturbance phases, a plant length
+    "theorem9": (
+        {"chi1dot.initial": [0.2, -0.1], "qds.q_d0": [0.1, 0.0], "qds.qdot_d0": [0.2, 0.1],
+         "dist.phases": 0.7, "plant.arm.l1": 1.1, "simulation.t_final": 0.5},
+        [("initial: 0}      # chi_1'(0)", "initial: [0.2, -0.1]}      # chi_1'(0)"),
+         ("q_d0: [0, 0], qdot_d0: \"qd_amp*qd_freq\"", "q_d0: [0.1, 0.0], qdot_d0: [0.2, 0.1]"),
+         ("amplitudes: \"tau_amp*ones(2, n_dist)\"}",
+          "amplitudes: \"tau_amp*ones(2, n_dist)\", phases: 0.7}"),
+         ("simulation: {t_final: 60,", "simulation: {t_final: 0.5,")],
+        [("qdot0: qdot0, gravity: gravity}", "qdot0: qdot0, gravity: gravity, l1: 1.1}")]),
+}
+
+
+@pytest.mark.parametrize("diagram", sorted(SCENARIOS))
+def test_a_scenario_is_one_run_with_set_only(diagram, tmp_path):
+    """The clients' 71 edited copies: the same numbers, bit for bit, from --set paths."""
+    sets, edits, plant_edits = SCENARIOS[diagram]
+    shipped = str(REPO / "diagrams" / f"{diagram}.yaml")
+    by_set = fwdstep.simulate(fwdstep.load_diagram(shipped, sets))
+    edited = _edited_copy(tmp_path, f"{diagram}.yaml", edits, plant_edits)
+    by_copy = fwdstep.simulate(fwdstep.load_diagram(edited))
+    plain = fwdstep.simulate(fwdstep.load_diagram(shipped, {"simulation.t_final":
+                                                            sets["simulation.t_final"]}))
+    assert len(by_set.t) == len(by_copy.t) > 5
+    names = list(by_copy.names)
+    assert names and names == list(by_set.names)
+    for name in names:
+        assert np.array_equal(by_set[name], by_copy[name]), name
+    assert any(not np.array_equal(by_set[n], plain[n]) for n in names)   # the sets did act
+
+
+def test_set_reaches_block_subsystem_and_inner_block_parameters(three_levels):
+    spec = load_spec(three_levels, {"top.o": 5, "top.mid.first.gain": 7, "top.mid.inner.k": 4})
+    gains = {b.name: float(b.params["gain"]) for b in spec.blocks if b.name != "c"}
+    # top.o = 5 -> m = 10 -> first's gain 10, inner's k 11; the two deeper sets win: 7, 3*4
+    assert gains == {"top/mid/first": 7.0, "top/mid/inner/g": 12.0}
+    spec = load_spec(three_levels, {"top.o": 5})
+    gains = {b.name: float(b.params["gain"]) for b in spec.blocks if b.name != "c"}
+    assert gains == {"top/mid/first": 10.0, "top/mid/inner/g": 33.0}
+
+
+@pytest.mark.parametrize("name, message", [
+    ("top.oo", "top.yaml:6: --set top.oo=...: subsystem 'top' (lib/outer.yaml) has no "
+               "parameter 'oo'; did you mean 'o'? (a block's parameter is top.BLOCK.PARAMETER)"),
+    ("tpo.o", "top.yaml:4: --set tpo.o=...: the diagram has no block 'tpo'; did you mean "
+              "'top'?"),
+    ("top.mid.frst.gain", "lib/middle.yaml:4: --set top.mid.frst.gain=...: subsystem "
+                          "'top/mid' has no block 'frst'; did you mean 'first'?"),
+    ("top.mid.first.gian", "lib/middle.yaml:5: --set top.mid.first.gian=...: block "
+                           "'top/mid/first' (Gain) has no parameter 'gian'; did you mean "
+                           "'gain'?"),
+    ("top.mid.first.gain.x", "lib/middle.yaml:5: --set top.mid.first.gain.x=...: block "
+                             "'top/mid/first' is a Gain, not a subsystem; write "
+                             "top.mid.first.PARAMETER"),
+])
+def test_unknown_set_paths_are_refused_with_a_suggestion(three_levels, capsys, name, message):
+    expected = os.path.join(os.path.dirname(three_levels), message)
+    with pytest.raises(DiagramError) as info:
+        load_spec(three_levels, {name: 1})
+    assert str(info.value) == expected
+    assert cli.main(["validate", three_levels, "--set", f"{name}=1"]) == 2
+    assert capsys.readouterr().err == f"fwdstep: {expected}\n"
+
+
+def test_set_log_replaces_the_logged_signals(three_levels):
+    spec = load_spec(three_levels, {"log": ["top.y", "c.y"]})
+    assert spec.log == ["top.y", "c.y"]
+    r = fwdstep.simulate(fwdstep.load_diagram(three_levels, {"log": "c.y"}))
+    assert list(r.names) == ["c.y"]
+
+
+def test_a_diagram_without_ports_is_a_subsystem_reached_by_inner_port_names(tmp_path):
+    (tmp_path / "pair.yaml").write_text(
+        "parameters: {k: 2}\nblocks:\n  g: {type: Gain, gain: k, shape: [1]}\n"
+        "  i: {type: Integrator, shape: [1]}\nconnections: [g.y -> i.u]\n"
+        "simulation: {t_final: 5, step: 1}\n")      # a runnable diagram of its own, no ports:
+    top = tmp_path / "top.yaml"
+    top.write_text("blocks:\n  c: {type: Constant, value: [1]}\n"
+                   "  p: {type: subsystem, file: pair.yaml, parameters: {k: 3}}\n"
+                   "connections: [c.y -> p.g.u]\nlog: [p/i.y]\n"
+                   "simulation: {t_final: 1, step: 0.5}\n")
+    r = fwdstep.simulate(fwdstep.load_diagram(str(top)))
+    assert r["p/i.y"][:, 0].tolist() == [0.0, 1.5, 3.0]      # x' = 3 * 1
+    top.write_text(top.read_text().replace("p.g.u", "p.h.u"))
+    with pytest.raises(WiringError) as info:
+        load_spec(str(top))
+    assert str(info.value) == (f"{top}:4: connection names block 'h', which does not exist; "
+                               "blocks are: g, i")
