@@ -65,10 +65,13 @@ class SubStep:
 @dataclass
 class EventPlan:
     """``steps[n]``: the sub-steps replacing grid step n (only steps touched by an event);
-    ``final``: the event at t_final (updates before the final record), or None."""
+    ``final``: the event at t_final (updates before the final record), or None;
+    ``instants``: (time, event) in time order, the time being the grid point an event was
+    snapped to or the event's own time (the breakpoints of ``fwdstep.ivp``)."""
     steps: dict
     final: Event | None
     events: list
+    instants: list = field(default_factory=list)
 
     @property
     def discrete(self) -> bool:
@@ -112,12 +115,16 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
     # events at grid points (index m) and inside steps (index n: t_n < T < t_{n+1})
     at_grid: dict = {}
     inside: dict = {}
+    instants = []
     for ev in events:
         m = round(ev.lo / h)
         if abs(ev.lo - m * h) <= eps or abs(ev.hi - m * h) <= eps:
-            at_grid[min(max(m, 0), n_steps)] = ev
+            m = min(max(m, 0), n_steps)
+            at_grid[m] = ev
+            instants.append((m * h, ev))
         else:
             inside.setdefault(math.floor(ev.lo / h), []).append(ev)
+            instants.append((ev.lo, ev))
     steps = {}
     touched = set(inside) | {m for m in at_grid if m < n_steps} | {m - 1 for m in at_grid
                                                                   if m > 0}
@@ -134,7 +141,7 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
         hi = math.nextafter(end.lo, -math.inf) if end else math.inf
         subs.append(SubStep(a, (n + 1) * h, lo, hi, upd))
         steps[n] = subs
-    return EventPlan(steps=steps, final=at_grid.get(n_steps), events=events)
+    return EventPlan(steps=steps, final=at_grid.get(n_steps), events=events, instants=instants)
 
 
 def apply_updates(d, steps: list, t: float, x: np.ndarray, outputs, sig) -> None:

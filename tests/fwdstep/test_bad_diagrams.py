@@ -219,7 +219,7 @@ CASES = [
      "simulation has no setting 'dt'; settings are: t_final, step, solver, log_every, bound, "
      'backend'),
     ("unknown_solver", ConfigError, 3,
-     "simulation.solver 'rk45' is unknown; solvers are: euler, heun, rk4"),
+     "simulation.solver 'rk45' is unknown; solvers are: euler, heun, rk4, dop853, radau, lsoda"),
     ("unknown_source_port", WiringError, 5,
      "block 'src' has no output port 'out'; output ports are: y"),
     ("unknown_top_level_key", ConfigError, 3,
