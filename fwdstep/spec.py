@@ -484,7 +484,10 @@ class _Level:
             chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
             raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
                               file=file, line=_line(body, "file"))
-        child_doc = _read_document(path, self.cache)
+        child_doc = self.search.documents.get(os.path.realpath(path))
+        if child_doc is None:       # each file parsed once per load; expansion never mutates it
+            child_doc = self.search.documents[os.path.realpath(path)] = _read_document(
+                path, self.cache)
         passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
         child_params = child_doc.get("parameters") or {}
         child_blocks = child_doc.get("blocks") if isinstance(child_doc.get("blocks"), dict) else {}
@@ -760,6 +763,41 @@ def split_overrides(overrides: dict, parameters) -> tuple:
         if name == "log" and "log" not in (parameters or {}):
             log = value if isinstance(value, list) else [value]
         elif name.startswith("simulation."):
+def count_blocks(path: str, doc, search: SearchPath, cache: dict | None,
+                 memo: dict | None = None, stack: tuple = ()) -> int:
+    """Blocks of ``doc`` after subsystem expansion, counted from the files alone (each parsed
+    once), so a fan-out of small files is refused before anything is built.  Files that cannot
+    be found or read count 0 here: expansion reports them."""
+    memo = {} if memo is None else memo
+    blocks = doc.get("blocks") if isinstance(doc, dict) else None
+    if not isinstance(blocks, dict):
+        return 0
+    total = 0
+    for body in blocks.values():
+        if not (isinstance(body, dict) and body.get("type") == "subsystem"
+                and isinstance(body.get("file"), str)):
+            total += 1
+            continue
+        try:
+            child = search.resolve(body["file"], path, "subsystem", None)
+        except DiagramError:
+            continue
+        key = os.path.realpath(child)
+        if key in stack or len(stack) > MAX_SUBSYSTEM_DEPTH:
+            continue
+        if key not in memo:
+            try:
+                child_doc = search.documents.get(key)
+                if child_doc is None:
+                    child_doc = search.documents[key] = _read_document(child, cache)
+            except DiagramError:
+                memo[key] = 0
+                continue
+            memo[key] = count_blocks(child, child_doc, search, cache, memo, stack + (key,))
+        total += memo[key]
+    return total
+
+
             sim[name.split(".", 1)[1]] = value
         elif "." in name:
             paths[tuple(name.split("."))] = value
@@ -800,6 +838,7 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                             line=_line(doc, "parameters"), budget=budget)
     if sim_overrides or log_override is not None:  # --set simulation.t_final=20, --set log=[..]
         original, doc = doc, LineDict(doc)
+    cache = {} if cache is None else cache     # a subsystem used many times is parsed once
         doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
     if sim_overrides:
         sim_raw = _mapping(doc.get("simulation"), "simulation", path, _line(doc, "simulation"))
@@ -810,13 +849,18 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
     if log_override is not None:
         doc["log"] = log_override
     level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
-                   sets=paths, errors=errors, budget=budget)
+                   sets=paths, errors=errors, budget=budget, search=search)
     level.expand()
     sim = None
     try:
         sim = _simulation(doc, ns, path)
     except DiagramError as exc:
         errors.append(exc)
+    search = SearchPath(path)
+    total = count_blocks(path, doc, search, cache)
+    if total > MAX_BLOCKS:
+        raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
+                          f"limit is {MAX_BLOCKS}", file=path, line=_line(doc, "blocks"))
     lines, signal_info = {}, {}
     log = doc.get("log")
     if log is not None:
