@@ -4,17 +4,32 @@ from __future__ import annotations
 import sys
 
 
+_DIAGRAM_HELP = "the diagram file (YAML; docs/diagram-format.md)"
+_SET_HELP = ("replace a value before building (repeatable): NAME (a parameter), BLOCK.PARAM, "
+             "SUB.PARAM, SUB.BLOCK.PARAM, simulation.SETTING or log=[blk.port, ...]")
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+        return version("fwdstep")
+    except Exception:  # noqa: BLE001 - not installed: the source tree's own number
+        from fwdstep import __version__
+        return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     import argparse                  # imported here: main() handles signals from its first line
     p = argparse.ArgumentParser(
         prog="fwdstep",
         description="Block-diagram simulation of forwardstepping control of robot manipulators.")
+    p.add_argument("--version", action="version", version=f"fwdstep {_version()}",
+                   help="print fwdstep's version and exit")
     sub = p.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="simulate a diagram; write result.npz, summary.json, PNGs")
-    run.add_argument("diagram")
-    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                     help="replace a diagram parameter before building (repeatable)")
+    run.add_argument("diagram", help=_DIAGRAM_HELP)
+    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
     run.add_argument("-o", "--outdir", default=None,
                      help="output directory (default: out/<diagram name>)")
     run.add_argument("--force", action="store_true", help="overwrite existing results")
@@ -24,11 +39,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override simulation.backend (compiled needs numba: fwdstep[fast])")
 
     val = sub.add_parser("validate", help="load and compile a diagram (exit 0 or 2)")
-    val.add_argument("diagram")
-    val.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    val.add_argument("diagram", help=_DIAGRAM_HELP)
+    val.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
 
     blk = sub.add_parser("blocks", help="list the block library, or show one block's doc")
-    blk.add_argument("name", nargs="?")
+    blk.add_argument("name", nargs="?", help="a block type (e.g. Gain): show its documentation")
+
+    sch = sub.add_parser("schema", help="print the JSON Schema of the diagram format (from the "
+                                        "block registry), for editors")
+    sch.add_argument("-o", "--output", default=None,
+                     help="write the schema to this file instead of standard output")
 
     sw = sub.add_parser("sweep", help="run a diagram over a grid of parameter values")
     sw.add_argument("diagram")
@@ -149,6 +169,9 @@ def _main(argv=None) -> int:
             return commands.cmd_validate(args.diagram, args.set)
         if args.command == "blocks":
             return commands.cmd_blocks(args.name)
+        if args.command == "schema":
+            from fwdstep.schema import cmd_schema
+            return cmd_schema(args.output)
         if args.command == "sweep":
             from fwdstep.sweep import cmd_sweep
             return cmd_sweep(args)

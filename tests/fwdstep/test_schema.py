@@ -1,0 +1,93 @@
+"""The JSON Schema of the diagram format (fwdstep/schema.py, ``fwdstep schema``).
+
+It is generated from the block registry, so these tests compare it with the registry itself
+and run it, through the independent ``jsonschema`` validator, over every shipped diagram
+(must pass) and over typical mistakes (must fail, at the right place).
+"""
+import json
+from pathlib import Path
+
+import pytest
+
+import cli
+from fwdstep.registry import load_library
+from fwdstep.schema import diagram_schema, schema_text
+from fwdstep.spec import SIMULATION_KEYS, TOP_LEVEL_KEYS
+from fwdstep.yamlio import read_yaml_file
+
+jsonschema = pytest.importorskip("jsonschema")
+REPO = Path(__file__).resolve().parents[2]
+SHIPPED = sorted((REPO / "diagrams").glob("*.yaml")) + sorted((REPO / "diagrams" / "lib")
+                                                              .glob("*.yaml"))
+
+
+def plain(value):
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [plain(v) for v in value]
+    return value
+
+
+@pytest.fixture(scope="module")
+def validator():
+    schema = diagram_schema()
+    jsonschema.Draft7Validator.check_schema(schema)
+    return jsonschema.Draft7Validator(schema)
+
+
+def test_every_block_type_and_parameter_is_in_the_schema():
+    schema = diagram_schema()
+    registry = load_library()
+    assert set(schema["properties"]) == set(TOP_LEVEL_KEYS)
+    assert set(schema["properties"]["simulation"]["properties"]) == set(SIMULATION_KEYS)
+    types = schema["definitions"]["block"]["properties"]["type"]["enum"]
+    assert sorted(types) == sorted(list(registry) + ["subsystem"])
+    for name, cls in registry.items():
+        block = schema["definitions"][f"block.{name}"]
+        assert set(block["properties"]) == {"type"} | set(cls.params), name
+        assert set(block["required"]) == {"type"} | {k for k, d in cls.params.items()
+                                                     if d.required}, name
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.name for p in SHIPPED])
+def test_every_shipped_diagram_satisfies_the_schema(path, validator):
+    errors = [e.message for e in validator.iter_errors(plain(read_yaml_file(str(path))))]
+    assert errors == []
+
+
+GOOD = {"blocks": {"g": {"type": "Gain", "gain": "2*k"}, "c": {"type": "Constant", "value": 1}},
+        "connections": ["c.y -> g.u"], "simulation": {"t_final": 1, "step": 0.1}}
+
+
+@pytest.mark.parametrize("change, where", [
+    (lambda d: d["blocks"]["g"].update(gian=2), ["blocks", "g"]),                 # typo
+    (lambda d: d["blocks"]["g"].update(type="Gainn"), ["blocks", "g", "type"]),
+    (lambda d: d["blocks"]["c"].pop("value"), ["blocks", "c"]),                   # required
+    (lambda d: d["blocks"].update(r={"type": "ReferenceDynamics", "variant": "eq99", "ell": 1,
+                                     "n": 2}), ["blocks", "r", "variant"]),
+    (lambda d: d["simulation"].update(solver="rk5"), ["simulation", "solver"]),
+    (lambda d: d["simulation"].update(stepp=1), ["simulation"]),
+    (lambda d: d.update(paramters={}), []),
+    (lambda d: d["connections"].append("c.y => g.u"), ["connections", 1]),
+    (lambda d: d.update(log=["cy"]), ["log", 0]),
+])
+def test_mistakes_are_caught_where_they_are(change, where, validator):
+    assert list(validator.iter_errors(GOOD)) == []
+    doc = json.loads(json.dumps(GOOD))
+    change(doc)
+    errors = list(validator.iter_errors(doc))
+    assert errors
+    assert any(list(e.absolute_path)[:len(where)] == where for e in errors), \
+        [(list(e.absolute_path), e.message) for e in errors]
+
+
+def test_the_command_prints_the_schema_and_the_shipped_file_is_current(capsys, tmp_path):
+    assert cli.main(["schema"]) == 0
+    assert capsys.readouterr().out == schema_text()
+    out = tmp_path / "s.json"
+    assert cli.main(["schema", "-o", str(out)]) == 0
+    assert json.loads(out.read_text()) == diagram_schema()
+    shipped = REPO / "docs" / "diagram.schema.json"
+    assert shipped.read_text() == schema_text(), \
+        "docs/diagram.schema.json is stale: run fwdstep schema -o docs/diagram.schema.json"
