@@ -147,6 +147,18 @@ class Result:
         from .report import result_summary_html
         return result_summary_html(self)
 
+    # ------------------------------------------------------------------ labelled data
+    def to_xarray(self):
+        """The signals as an xarray Dataset: dims time, [variant,] and each signal's own
+        component axes; attrs: status, diagram, settings (``fwdstep.labelled``)."""
+        from .labelled import result_dataset
+        return result_dataset(self)
+
+    def to_pandas(self):
+        """The signals as a pandas DataFrame indexed by time, one column per component."""
+        from .labelled import result_frame
+        return result_frame(self)
+
 
 def load_result(outdir: str) -> Result:
     """A Result saved by ``fwdstep run`` (``result.npz`` + ``summary.json`` in ``outdir``).
@@ -196,20 +208,51 @@ def _figure_summary(result: Result) -> dict:
                         if v in result.names}}
 
 
+#: The error metrics in summary.json (docs/diagram-format.md, "Metrics").  e(t) is the signal
+#: named by ``metrics: error:``, flattened per time; |e|_2 its Euclidean norm over components,
+#: max_i |e_i| its largest component; "tail" is the last ``metrics: tail`` fraction (20 %) of
+#: the logged time span.
+METRIC_DEFINITIONS = {
+    "final_error_norm": "|e(T)|_2 at the last logged time T",
+    "final_error_max_abs": "max_i |e_i(T)|: the largest component (joint) error at T",
+    "tail_error_norm_max": "max over the tail of |e(t)|_2",
+    "tail_error_max_abs": "max over the tail and the components of |e_i(t)| (largest joint)",
+    "tail_error_max_abs_by_component": "per component i: max over the tail of |e_i(t)|",
+    "rms_error_norm": "sqrt(mean over logged t of |e(t)|_2^2)",
+    "error_norm_max": "max over all logged t of |e(t)|_2",
+    # the names before issue 15, kept for old scripts: all four are Euclidean norms
+    "final_abs_error": "= final_error_norm (old name)",
+    "tail_max_abs_error": "= tail_error_norm_max (old name)",
+    "rms_error": "= rms_error_norm (old name)",
+    "max_abs_error": "= error_norm_max (old name)",
+}
+
+
 def error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> dict:
+    """The metrics of METRIC_DEFINITIONS for the error signal ``e`` (time first)."""
     if len(t) == 0:
-        return {"final_abs_error": None, "tail_max_abs_error": None, "rms_error": None}
+        return {k: None for k in METRIC_DEFINITIONS}
+    flat = e.reshape(len(t), -1)
     with np.errstate(all="ignore"):      # a diverged run has huge, inf or NaN errors
-        norm = _scaled_norm(e.reshape(len(t), -1), axis=1)
+        norm = _scaled_norm(flat, axis=1)
         rms = _scaled_norm(norm, axis=0) / np.sqrt(len(norm))
+        absolute = np.abs(flat)
     t_end = t[-1]
     mask = t >= t[0] + (1 - tail) * (t_end - t[0])
-    return {
-        "final_abs_error": float(norm[-1]),
-        "tail_max_abs_error": float(np.max(norm[mask])),
-        "rms_error": float(rms),
-        "max_abs_error": float(np.max(norm)),
+    by_component = np.max(absolute[mask], axis=0)
+    out = {
+        "final_error_norm": float(norm[-1]),
+        "final_error_max_abs": float(np.max(absolute[-1])),
+        "tail_error_norm_max": float(np.max(norm[mask])),
+        "tail_error_max_abs": float(np.max(by_component)),
+        "tail_error_max_abs_by_component": [float(v) for v in by_component],
+        "rms_error_norm": float(rms),
+        "error_norm_max": float(np.max(norm)),
     }
+    out.update(final_abs_error=out["final_error_norm"], tail_max_abs_error=out[
+        "tail_error_norm_max"], rms_error=out["rms_error_norm"],
+        max_abs_error=out["error_norm_max"])
+    return out
 
 
 def _scaled_norm(a: np.ndarray, axis: int):

@@ -6,7 +6,8 @@
                   [--random NAME=DIST ... --samples N --seed S --design random|lhs|sobol]
                   [--seed-parameter NAME] [--set NAME=VALUE ...]
                   [--workers N | --scheduler ADDRESS] [--max-memory SIZE] [--batch-size N]
-                  [--sequential] [--resume] [--no-signals] [-o OUTDIR] [--force] [-q]
+                  [--sequential] [--resume] [--no-signals] [--netcdf] [-o OUTDIR] [--force]
+                  [-q]
 
 The variants are the Cartesian product of the ``--grid`` values (each value a number or an
 expression, e.g. ``K=20*eye(2),50*eye(2)``; commas inside brackets do not split; a solver
@@ -40,9 +41,10 @@ finishes; Ctrl-C or SIGTERM stops the sweep and keeps them (exit 130), and ``--r
 only the variants that are not there yet.
 
 Writes ``OUTDIR/sweep.csv`` (one row per variant: the swept parameters, the batch, the
-status and the diagram's error metrics), ``OUTDIR/sweep.nc`` (the error signal of every
-variant, labelled: ``fwdstep.labelled``; not with ``--no-signals``) and ``OUTDIR/sweep.png``
-(each metric against each swept parameter, and |e|(t) of up to 8 variants).  Exit codes as
+status and the diagram's error metrics), ``OUTDIR/sweep.png`` (each metric against each
+swept parameter, and |e|(t) of up to 8 variants) and, with ``--netcdf``, ``OUTDIR/sweep.nc``
+(the error signal of every variant as a labelled xarray Dataset, ``fwdstep.labelled``;
+``OUTDIR/parts/*.npz`` hold the same numbers unless ``--no-signals``).  Exit codes as
 ``fwdstep run``: 0 all variants ok, 2 bad input, 3 some diverged, 4 some raised, 130
 interrupted.
 
@@ -111,6 +113,7 @@ class SweepResult:
     metric_signal: str | None
     wall_time: float = 0.0
     interrupted: bool = False
+    signal_number: int = signal.SIGINT             # what interrupted it (exit 128 + this)
     settings: dict = field(default_factory=dict)   # simulation settings of the first variant
     parts: list = field(default_factory=list)      # in-memory batch outcomes (no outdir)
     outdir: str | None = None                      # where the parts were written
@@ -150,9 +153,9 @@ class SweepResult:
         from .labelled import sweep_dataset
         return sweep_dataset(self)
 
-    def write(self, outdir: str, plots: bool = True) -> list:
-        """Write sweep.csv, sweep.nc (when signals were kept) and sweep.png into ``outdir``;
-        returns the paths written."""
+    def write(self, outdir: str, plots: bool = True, dataset: bool = False) -> list:
+        """Write sweep.csv, sweep.png and (``dataset=True``, when signals were kept) sweep.nc
+        into ``outdir``; returns the paths written."""
         os.makedirs(outdir, exist_ok=True)
         rows = self.rows()
         buf = io.StringIO()
@@ -165,7 +168,7 @@ class SweepResult:
         path = safe_path(outdir, CSV_FILE)
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
         written = [path]
-        if self.has_signals():
+        if dataset and self.has_signals():
             from .labelled import write_dataset
             written.append(write_dataset(self, safe_path(outdir, DATASET_FILE)))
         if plots and self.metric_signal is not None and any(v.metrics for v in self.variants):
@@ -380,7 +383,8 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     ``dask.distributed.Client``) / ``scheduler`` (its address).  With ``outdir`` each
     finished batch is written to ``outdir/parts`` at once and ``resume=True`` skips the
     variants found there.  ``variants`` (instead of grid/random) lists the variants
-    explicitly, one dict of parameter values each (a missing name keeps the diagram's value).  ``progress(text)`` is told about each finished batch.
+    explicitly, one dict of parameter values each (a missing name keeps the diagram's
+    value).  ``progress(text)`` is told about each finished batch.
     Raises ``DiagramError`` for a bad diagram or bad sweep options (nothing is run then)."""
     from .spec import load_spec
     grid, random, overrides = dict(grid or {}), dict(random or {}), dict(overrides or {})
@@ -459,9 +463,10 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
                 more = ("s", ", ...") if len(job.indices) > 1 else ("", "")
                 progress(f"batch {finished}/{len(jobs)} done: {len(job.indices)} "
                          f"variant{more[0]} ({description}{more[1]})")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         stream.close()
         result.interrupted = True
+        result.signal_number = int(getattr(exc, "signum", signal.SIGINT))
         for v in table:
             if v.status == "not run":
                 v.status = "interrupted"
@@ -642,10 +647,16 @@ def _series(ok: list, others: list) -> dict:
 # ---------------------------------------------------------------------------- command
 @contextlib.contextmanager
 def _terminate_as_interrupt():
-    """SIGTERM (a batch system's kill) stops the sweep like Ctrl-C: finished batches kept."""
+    """SIGTERM (a batch system's kill) stops the sweep like Ctrl-C: finished batches kept.
+    (``cli.main`` may have installed such a handler already; then it is left alone.)"""
     def handler(signum, frame):
-        raise KeyboardInterrupt
+        exc = KeyboardInterrupt()
+        exc.signum = signum
+        raise exc
     try:
+        if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+            yield
+            return
         previous = signal.signal(signal.SIGTERM, handler)
     except ValueError:                   # not the main thread
         yield
@@ -685,11 +696,11 @@ def cmd_sweep(args) -> int:
     except (DiagramError, OutputError) as exc:
         print(f"fwdstep: {exc}", file=sys.stderr)
         return EXIT_INPUT
-    except KeyboardInterrupt:            # before any batch ran: nothing to keep
+    except KeyboardInterrupt as exc:     # before any batch ran: nothing to keep
         print("fwdstep: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))
     try:
-        written = result.write(outdir)
+        written = result.write(outdir, dataset=getattr(args, "netcdf", False))
     except (OSError, OutputError) as exc:
         print(f"fwdstep: cannot write results to {outdir}: {exc}", file=sys.stderr)
         return EXIT_INPUT
@@ -704,7 +715,7 @@ def cmd_sweep(args) -> int:
             print(f"interrupted: finished batches are in {os.path.join(outdir, PARTS_DIR)}; "
                   "run again with --resume to finish the rest")
     if result.interrupted:
-        return EXIT_INTERRUPTED
+        return 128 + result.signal_number if result.signal_number else EXIT_INTERRUPTED
     if counts.get("error"):
         return EXIT_BLOCK
     if counts.get("diverged"):
