@@ -53,12 +53,35 @@ def build_parser() -> argparse.ArgumentParser:
     sw = sub.add_parser("sweep", help="run a diagram over a grid of parameter values")
     sw.add_argument("diagram")
     sw.add_argument("--grid", action="append", default=[], metavar="NAME=V1,V2,...")
-    sw.add_argument("--random", action="append", default=[], metavar="NAME=LOW:HIGH")
-    sw.add_argument("--samples", type=int, default=0)
-    sw.add_argument("--seed", type=int, default=0)
+    sw.add_argument("--random", action="append", default=[], metavar="NAME=DIST",
+                    help="draw NAME: LOW:HIGH (uniform), loguniform:LOW:HIGH or "
+                         "normal:MEAN:SD; needs --samples")
+    sw.add_argument("--samples", type=int, default=0, help="draws per grid cell")
+    sw.add_argument("--seed", type=int, default=0, help="seed of the draws (and variant seeds)")
+    sw.add_argument("--design", choices=("random", "lhs", "sobol"), default="random",
+                    help="how the --samples points are placed: independent draws, Latin "
+                         "hypercube or scrambled Sobol (scipy.stats.qmc)")
+    sw.add_argument("--seed-parameter", default=None, metavar="NAME",
+                    help="give each variant its own integer seed in diagram parameter NAME")
     sw.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     sw.add_argument("--sequential", action="store_true",
                     help="run variants one by one instead of in batches")
+    sw.add_argument("--workers", type=int, default=None, metavar="N",
+                    help="local worker processes (default: every core; 1: this process)")
+    sw.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run the batches on this Dask scheduler (tcp://HOST:PORT); needs "
+                         "fwdstep[distributed]")
+    sw.add_argument("--max-memory", default=None, metavar="SIZE",
+                    help="memory for the batches running at once, e.g. 2GB (default 1GB)")
+    sw.add_argument("--batch-size", type=int, default=None, metavar="N",
+                    help="at most N variants per batch")
+    sw.add_argument("--resume", action="store_true",
+                    help="keep the finished batches in OUTDIR/parts and run only the rest")
+    sw.add_argument("--no-signals", action="store_true",
+                    help="keep only the table, not every variant's error signal")
+    sw.add_argument("--netcdf", action="store_true",
+                    help="also write sweep.nc: every variant's error as a labelled xarray "
+                         "Dataset (needs xarray)")
     sw.add_argument("-o", "--outdir", default=None)
     sw.add_argument("--force", action="store_true")
     sw.add_argument("-q", "--quiet", action="store_true")
