@@ -105,6 +105,11 @@ def _add_results_commands(sub, run) -> None:
     gr.add_argument("--engine", choices=("auto", "dot", "matplotlib"), default="auto",
                     help="layout: graphviz dot (default when installed) or matplotlib")
     gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    rep = sub.add_parser("report", help="one self-contained HTML page of a run or sweep "
+                                        "directory: diagram, parameters, metrics, figures")
+    rep.add_argument("run_dir", metavar="RUN_DIR")
+    rep.add_argument("-o", "--output", default=None,
+                     help="the HTML file (default: RUN_DIR/report.html)")
     cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "
                                          "differences and a metrics table")
     cmp.add_argument("runs", nargs="+", metavar="RUN_DIR",
@@ -122,6 +127,18 @@ def _results_command(args):
     if args.command == "graph":
         from fwdstep.drawing import cmd_graph
         return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine)
+    if args.command == "run" and (args.figure_format or args.report):
+        from fwdstep import commands
+        code = commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
+                                plots=not args.no_plots, quiet=args.quiet, backend=args.backend,
+                                formats=tuple(dict.fromkeys(args.figure_format or ["png"])))
+        if args.report and code != 2:            # partial results get a report too
+            from fwdstep.report import cmd_report
+            code = cmd_report(args.outdir or commands.default_outdir(args.diagram)) or code
+        return code
+    if args.command == "report":
+        from fwdstep.report import cmd_report
+        return cmd_report(args.run_dir, args.output)
     if args.command == "compare":
         from fwdstep.compare import cmd_compare
         return cmd_compare(args.runs, args.outdir, args.signal, args.figure_format)

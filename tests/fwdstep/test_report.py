@@ -1,0 +1,132 @@
+"""fwdstep report / run --report: one self-contained HTML page; rendered by headless Chromium
+when it is installed (Debian package ``chromium``)."""
+import base64
+import html.parser
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from cli import main
+
+DIAGRAM = """
+description: Two decaying joints, x' = g x.
+parameters: {g: -1.0}
+blocks:
+  x: {type: Integrator, shape: [2], initial: [1.0, -2.0]}   # eq. (7)
+  k: {type: Gain, gain: g, shape: [2]}
+connections:
+  - x.y -> k.u
+  - k.y -> x.u
+simulation: {t_final: 2, step: 0.01, solver: heun}
+log:
+  - {signal: x.y, label: '$\\Delta q$', unit: rad, components: [joint 1, joint 2]}
+plots:
+  decay: [x.y, {signals: [x.y], scale: log}]
+metrics: {error: x.y}
+"""
+
+
+class _Page(html.parser.HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.images, self.links, self.text = [], [], []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.images.append(a)
+        for key in ("href", "src"):
+            if key in a and tag != "img":
+                self.links.append(a[key])
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def _parse(path):
+    page = _Page()
+    page.feed(path.read_text())
+    return page
+
+
+def _run(tmp_path, *extra):
+    d = tmp_path / "d.yaml"
+    d.write_text(DIAGRAM)
+    out = tmp_path / "run"
+    code = main(["run", str(d), "-o", str(out), "-q", "--set", "g=-2.5", "--report", *extra])
+    assert code == 0
+    return out
+
+
+def test_run_report_is_self_contained_with_every_image(tmp_path):
+    out = _run(tmp_path)
+    page = _parse(out / "report.html")
+    assert page.links == []                                  # nothing fetched from elsewhere
+    kinds = []
+    for img in page.images:
+        head, data = img["src"].split(",", 1)
+        assert head.startswith("data:") and head.endswith(";base64")
+        raw = base64.b64decode(data)
+        kinds.append("png" if raw[:8] == b"\x89PNG\r\n\x1a\n" else
+                     "svg" if b"<svg" in raw[:3000] else "?")
+    diagram = ["svg"] if shutil.which("dot") else ["svg"]
+    assert kinds == diagram + ["png"]                         # the diagram, then 'decay'
+    assert base64.b64decode(page.images[1]["src"].split(",", 1)[1]) == \
+        (out / "decay.png").read_bytes()
+    text = " ".join(page.text)
+    # the parameters as run (after --set), the solver settings, the metrics, the status
+    assert "-2.5" in text and "heun" in text and "ok" in text
+    final = np.linalg.norm([1.0, -2.0]) * np.exp(-2.5 * 2)
+    shown = [float(t) for t in page.text if t.strip().replace(".", "").replace("e-", "")
+             .replace("-", "").isdigit()]
+    assert any(abs(v - final) / final < 1e-3 for v in shown)
+    assert "Two decaying joints" in text
+
+
+def test_report_of_a_sweep_has_its_table_and_figure(tmp_path, capsys):
+    d = tmp_path / "d.yaml"
+    d.write_text(DIAGRAM)
+    out = tmp_path / "sweep"
+    assert main(["sweep", str(d), "--grid", "g=-1,-2,-3", "-o", str(out), "-q"]) == 0
+    assert main(["report", str(out)]) == 0
+    page = _parse(out / "report.html")
+    text = " ".join(page.text)
+    assert "3 ok" in text
+    assert len(page.images) >= 1 and page.images[-1]["alt"] == "sweep.png"
+
+
+def test_report_refusals(tmp_path, capsys):
+    assert main(["report", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == (f"fwdstep: {tmp_path} holds no saved run or sweep (no "
+                                       "summary.json or sweep.csv)\n")
+    out = _run(tmp_path)
+    mine = tmp_path / "notes.html"
+    mine.write_text("my notes")
+    assert main(["report", str(out), "-o", str(mine)]) == 2
+    assert mine.read_text() == "my notes"
+    assert main(["report", str(out), "-o", str(tmp_path / "r.html")]) == 0
+    assert main(["report", str(out), "-o", str(tmp_path / "r.html")]) == 0   # its own: replaced
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt install chromium)")
+def test_chromium_renders_the_report_images(tmp_path):
+    out = _run(tmp_path)
+    shot = tmp_path / "shot.png"
+    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
+                           "--disable-background-networking", "--hide-scrollbars",
+                           "--window-size=1200,2400", f"--screenshot={shot}",
+                           (out / "report.html").as_uri()],
+                          capture_output=True, timeout=120)
+    assert shot.exists(), proc.stderr.decode(errors="replace")[-500:]
+    from matplotlib.image import imread
+    img = (imread(str(shot))[:, :, :3] * 255).round()
+    # the figure's joint-1 line is matplotlib's C0 blue: only a rendered PNG figure has it
+    blue = np.all(np.abs(img - [31, 119, 180]) <= 12, axis=2).sum()
+    # the diagram's (SVG) box headers are the pale orange of output ports
+    orange = np.all(np.abs(img - [253, 242, 233]) <= 3, axis=2).sum()
+    assert blue > 200 and orange > 50, (blue, orange)
