@@ -1,0 +1,74 @@
+"""Baseline diagrams from generic blocks: computed torque gives the linear error dynamics
+Delta qddot + K_D Delta qdot + K_P Delta q = 0 (closed form for critical damping) on the
+two-link and the 3-link arm; PD + gravity compensation uses g(q) = Y(q, 0, 0, 0) theta
+(checked against the plant's g written out independently) and regulates a set point."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+import fwdstep
+
+DIAGRAMS = os.path.join(os.path.dirname(__file__), "..", "..", "diagrams")
+
+
+def run(name, **overrides):
+    d = fwdstep.load_diagram(os.path.join(DIAGRAMS, name), overrides=overrides)
+    r = fwdstep.simulate(d)
+    assert r.status == "ok"
+    return r
+
+
+@pytest.mark.parametrize("name,n", [("computed_torque.yaml", 2),
+                                    ("computed_torque_nlink.yaml", 3)])
+def test_computed_torque_error_is_the_critically_damped_linear_response(name, n):
+    """kP = w^2, kD = 2 w: Delta q(t) = (e0 + (edot0 + w e0) t) exp(-w t), with
+    e0 = q0 - q_d(0) = q0 and edot0 = 0 - qdot_d(0) = -A w_d (q_d = A sin(w_d t))."""
+    w = 10.0
+    q0 = np.array([0.3, -0.2, 0.1][:n])
+    A = np.array([0.5, 0.3, 0.4][:n])
+    r = run(name, kP=w * w, kD=2 * w, dist_amplitude=[0.0] * n, t_final=1.5, step=0.002,
+            log_every=5)
+    t = r.t[:, None]
+    edot0 = -A * 0.5
+    exact = (q0 + (edot0 + w * q0) * t) * np.exp(-w * t)
+    np.testing.assert_allclose(r["e.y"], exact, atol=1e-8)
+    assert np.max(np.abs(r["e.y"][0])) > 0.1         # a real transient, not a trivial zero
+
+
+def test_computed_torque_with_a_wrong_model_no_longer_decouples():
+    exact = run("computed_torque.yaml", dist_amplitude=[0.0, 0.0], t_final=1.5, step=0.002)
+    wrong = run("computed_torque.yaml", dist_amplitude=[0.0, 0.0], t_final=1.5, step=0.002,
+                model_scale=0.8)
+    assert np.max(np.abs(wrong["e.y"] - exact["e.y"])) > 1e-3
+
+
+def _two_link_gravity(q, g=9.81, m1=1.0, l1=1.0, me=2.0, lc1=0.5, lce=0.6, delta_e=30.0):
+    """g(q) of the TwoLinkArm docstring, written out again."""
+    c = np.cos(q[:, 0] + q[:, 1] - math.radians(delta_e))
+    return np.stack([(m1 * lc1 + me * l1) * g * np.cos(q[:, 0]) + me * lce * g * c,
+                     me * lce * g * c], axis=1)
+
+
+def test_pd_gravity_compensates_the_plant_gravity_and_regulates_a_set_point():
+    setpoint = [0.5, -0.3]
+    r = run("pd_gravity.yaml", qd_amplitude=[0.0, 0.0], qd_offset=setpoint,
+            dist_amplitude=[0.0, 0.0], t_final=5.0, step=0.002, log_every=5)
+    np.testing.assert_allclose(r["g.y"], _two_link_gravity(r["arm.q"]), rtol=1e-12, atol=1e-12)
+    assert np.max(np.abs(r["e.y"][-1])) < 1e-5
+    # without the gravity term the arm sags: Delta q settles where K_P Delta q = g(q)
+    sag = run("pd_gravity.yaml", qd_amplitude=[0.0, 0.0], qd_offset=setpoint,
+              dist_amplitude=[0.0, 0.0], t_final=5.0, step=0.002, model_scale=0.0, log_every=50)
+    e, q = sag["e.y"][-1], sag["arm.q"][-1:]
+    np.testing.assert_allclose(400.0 * e, -_two_link_gravity(q)[0], rtol=1e-6)
+    assert np.max(np.abs(e)) > 1e-2
+
+
+def test_pd_gravity_nlink_regulates_a_set_point():
+    r = run("pd_gravity_nlink.yaml", qd_amplitude=[0.0, 0.0, 0.0], qd_offset=[0.4, -0.2, 0.3],
+            dist_amplitude=[0.0, 0.0, 0.0], t_final=5.0, step=0.002)
+    err = np.max(np.abs(r["e.y"]), axis=1)
+    late, early = err[r.t >= 4.0].max(), err[(r.t >= 1.0) & (r.t <= 2.0)].max()
+    assert late < 2e-3 and late < 0.1 * early                # a decaying oscillation
+    assert np.max(np.abs(r["g.y"][-1])) > 1.0            # gravity is really compensated
