@@ -467,7 +467,7 @@ class _Level:
 
     def _expand_subsystem(self, name: str, body: LineDict, line, sets: dict):
         file = self.file
-        allowed = ("type", "file", "parameters")
+        allowed = ("type", "file", "parameters", "sample_period", "sample_offset")
         for key in body:
             if key not in allowed:
                 raise ParameterError(f"subsystem '{self.full(name)}' has no key '{key}'; keys are: "
@@ -554,6 +554,9 @@ class _Level:
             self.input_ports.setdefault(target, where)
         self.blocks.extend(child.blocks)
         self.connections.extend(child.connections)
+        if "sample_period" in body or "sample_offset" in body:   # a sampled controller
+            from .sampled import sample_subsystem
+            sample_subsystem(self, name, body, file, line)
         self.children[name] = child
         self.local_blocks[name] = "subsystem"
 
