@@ -89,7 +89,8 @@ def test_report_of_a_sweep_has_its_table_and_figure(tmp_path, capsys):
     d = tmp_path / "d.yaml"
     d.write_text(DIAGRAM)
     out = tmp_path / "sweep"
-    assert main(["sweep", str(d), "--grid", "g=-1,-2,-3", "-o", str(out), "-q"]) == 0
+    assert main(["sweep", str(d), "--grid", "g=-1,-2,-3", "-o", str(out), "-q",
+                 "--workers", "1"]) == 0
     assert main(["report", str(out)]) == 0
     page = _parse(out / "report.html")
     text = " ".join(page.text)
