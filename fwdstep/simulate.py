@@ -12,8 +12,16 @@ Procedure Step (one step of size h from (t_n, x_n), an s-stage explicit RK table
     x_{n+1} = x_n + h * sum_i b_i k_i
     if any |x_{n+1}| > bound or not finite: stop (diverged), keep what was recorded
 
-The final time is recorded with one extra output pass.  Nothing per-run is stored in the
-diagram or its blocks: all buffers live in this function's frame.
+The final time is recorded with one extra output pass.
+
+Steps that touch a declared discontinuity time (``Block.discontinuities``: a Step, a pulse
+edge, a sample instant) are split so that a (sub-)step ends exactly there, their stage
+times are clamped to the correct side of it, and discrete blocks are updated there between
+steps (``fwdstep.events``; docs/discrete-time.md).  Steps that touch none run exactly the
+procedure above.
+
+Nothing per-run is stored in the diagram or its blocks: all buffers live in this function's
+frame.
 
 ``simulate`` runs this procedure through ``fwdstep.program``, which generates it once per
 run as straight-line code over preallocated buffers and fuses the linear blocks (each
