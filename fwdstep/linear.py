@@ -205,8 +205,10 @@ def fusable(block: Block) -> bool:
 
 
 #: Fusion is skipped when one fused matrix would hold more numbers than this (dense
-#: matrices of large filtered signals would cost more than the calls they replace).
-MAX_FUSED_ELEMENTS = 4_000_000
+#: matrices of large filtered signals would cost more than the calls they replace).  At
+#: 1360 fused states (Theorem 6 on the Panda, diagrams/robots/) the dense product cost 14x
+#: the unfused calls; the shipped two-link diagrams have at most 175 states.
+MAX_FUSED_ELEMENTS = 250_000
 
 
 @dataclass
