@@ -37,6 +37,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress or summary line")
     run.add_argument("--backend", choices=("numpy", "compiled"), default=None,
                      help="override simulation.backend (compiled needs numba: fwdstep[fast])")
+    run.add_argument("--max-log-memory", default=None, metavar="SIZE",
+                     help="largest log kept in memory, e.g. 8GB (default 2GiB); a larger log "
+                          "is refused before the run starts")
+    run.add_argument("--log-to-disk", action="store_true",
+                     help="record into memory-mapped files beside OUTDIR instead of memory "
+                          "(limited by free disk space)")
 
     val = sub.add_parser("validate", help="load and compile a diagram (exit 0 or 2)")
     val.add_argument("diagram", help=_DIAGRAM_HELP)
@@ -204,7 +210,9 @@ def _main(argv=None) -> int:
         if args.command == "run":
             return commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
                                     plots=not args.no_plots, quiet=args.quiet,
-                                    backend=args.backend)
+                                    backend=args.backend,
+                                    max_log_memory=args.max_log_memory,
+                                    log_to_disk=args.log_to_disk)
         if args.command == "validate":
             return commands.cmd_validate(args.diagram, args.set)
         if args.command == "blocks":

@@ -61,9 +61,11 @@ def _progress(frac: float) -> None:
 
 
 def cmd_validate(path: str, sets=None) -> int:
+    from .budgets import check_log
     from .compiler import load_diagram
     try:
         d = load_diagram(path, _overrides(sets))
+        check_log(d)                    # never ok for a run that cannot start
     except DiagramError as exc:
         for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
             _err(str(each))
@@ -71,41 +73,66 @@ def cmd_validate(path: str, sets=None) -> int:
     print(f"{printable(path)}: ok — {len(d.schedule)} blocks, {d.n_states} states, "
           f"{len(d.signal_index)} signals, {d.spec.simulation.n_steps} steps of "
           f"{d.spec.simulation.step:g} s with {d.spec.simulation.solver}")
+    _note_defaults(d)
     return EXIT_OK
+
+
+def _note_defaults(d) -> None:
+    """A diagram that leaves out simulation settings runs with stated defaults, never silently."""
+    from .spec import defaults_note
+    note = defaults_note(d.spec.simulation)
+    if note:
+        print(f"fwdstep: note: {note}", file=sys.stderr)
 
 
 def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False,
             plots: bool = True, quiet: bool = False, backend: str | None = None,
-            formats=("png",)) -> int:
-    """``fwdstep run``: the output directory is claimed (locked, checked) before the
-    simulation starts and written as one transaction (``fwdstep.outputs``) after it, with
-    partial results when it diverged, failed or was interrupted (SIGINT/SIGTERM/SIGHUP)."""
+            formats=("png",), max_log_memory: str | None = None,
+            log_to_disk: bool = False) -> int:
+    """``fwdstep run``: the output directory is claimed (locked, checked) and the log's size
+    checked (``fwdstep.budgets``) before the simulation starts; results are written as one
+    transaction (``fwdstep.outputs``) after it, partial when it diverged, failed or was
+    interrupted (SIGINT/SIGTERM/SIGHUP).  ``log_to_disk`` records into memory-mapped files
+    beside the output directory instead of memory."""
+    import shutil
+    import tempfile
+    from .budgets import check_log, parse_size
     from .compiler import load_diagram
     from .outputs import OutputDir
     outdir = outdir or default_outdir(path)
+    log_dir = None
     try:
         d = load_diagram(path, _overrides(sets))
+        if not log_to_disk:
+            check_log(d, parse_size(max_log_memory) if max_log_memory else None)
         out = OutputDir(outdir, force, expected=run_files(d, plots, formats))
         out.__enter__()
     except (DiagramError, OutputError) as exc:
         _err(str(exc))
         return EXIT_INPUT
+    if not quiet:
+        _note_defaults(d)
     try:
-        return _run_into(out, d, plots, quiet, backend, formats)
-    except OutputError as exc:
+        if log_to_disk:
+            log_dir = tempfile.mkdtemp(prefix=f".{out.name}.fwdstep-log-", dir=out.parent)
+            check_log(d, to_disk=log_dir)
+        return _run_into(out, d, plots, quiet, backend, formats, log_dir)
+    except (DiagramError, OutputError) as exc:
         _err(str(exc))
         return EXIT_INPUT
     finally:
         out.__exit__(None, None, None)
+        if log_dir is not None:
+            shutil.rmtree(log_dir, ignore_errors=True)
 
 
-def _run_into(out, d, plots: bool, quiet: bool, backend, formats) -> int:
+def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None) -> int:
     from .simulate import simulate
     from . import signals
     code = EXIT_OK
     progress = None if quiet else _progress
     try:
-        result = simulate(d, progress=progress, backend=backend)
+        result = simulate(d, progress=progress, backend=backend, log_dir=log_dir)
     except SimulationError as exc:
         result = exc.result
         _err(str(exc))
@@ -132,10 +159,11 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats) -> int:
         m = result.metrics()
         reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
         line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"
-        if m and m.get("final_abs_error") is not None:
-            line += (f"; final |e| = {m['final_abs_error']:.3e}, max |e| over last "
-                     f"{int(100 * d.spec.metrics.get('tail', 0.2))}% = "
-                     f"{m['tail_max_abs_error']:.3e}, RMS = {m['rms_error']:.3e}")
+        if m and m.get("final_error_norm") is not None:     # names: fwdstep.result
+            line += (f"; final |e|_2 = {m['final_error_norm']:.3e}; over the last "
+                     f"{int(100 * d.spec.metrics.get('tail', 0.2))}%: max |e|_2 = "
+                     f"{m['tail_error_norm_max']:.3e}, largest joint max_i |e_i| = "
+                     f"{m['tail_error_max_abs']:.3e}; RMS |e|_2 = {m['rms_error_norm']:.3e}")
         print(line)
         print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
     return code

@@ -70,36 +70,66 @@ class LinearBlock(Block):
     def finalize(self, batch: int) -> None:
         p = self.p
         self._batched = p.A_T.shape[0] > 1
-        self._AT = p.A_T if self._batched else p.A_T[0]
         pick = (lambda a: a) if self._batched else (lambda a: a[0])
-        self._BT = [(j, pick(getattr(p, f"B_T_{j}"))) for j in self._b_used]
-        self._CT = [pick(getattr(p, f"C_T_{k}")) for k in range(len(self._out_names))]
-        self._DT = [[(j, pick(getattr(p, f"D_T_{k}_{j}"))) for j in used]
+        op = (lambda a: _operator(pick(a), self._batched))
+        self._AT = op(p.A_T)
+        self._BT = [(j, op(getattr(p, f"B_T_{j}"))) for j in self._b_used]
+        self._CT = [op(getattr(p, f"C_T_{k}")) for k in range(len(self._out_names))]
+        self._DT = [[(j, op(getattr(p, f"D_T_{k}_{j}"))) for j in used]
                     for k, used in enumerate(self._d_used)]
 
     @staticmethod
     def _flat(u: np.ndarray) -> np.ndarray:
         return u.reshape(u.shape[0], -1)
 
-    def _mul(self, v: np.ndarray, MT: np.ndarray) -> np.ndarray:
-        if self._batched:
-            return np.matmul(v[:, None, :], MT)[:, 0, :]
-        return v @ MT
-
     def output(self, t, x, u):
         outs = []
         for k, CT in enumerate(self._CT):
-            y = self._mul(x, CT)
+            y = CT(x) if CT is not None else np.zeros((x.shape[0],) + self._out_shapes[k])
+            y = y.reshape(x.shape[0], -1)
             for j, DT in self._DT[k]:
-                y = y + self._mul(self._flat(u[j]), DT)
+                if DT is not None:
+                    y = y + DT(self._flat(u[j]))
             outs.append(y.reshape((y.shape[0],) + self._out_shapes[k]))
         return tuple(outs)
 
     def derivative(self, t, x, u):
-        dx = self._mul(x, self._AT)
+        dx = self._AT(x) if self._AT is not None else None
         for j, BT in self._BT:
-            dx = dx + self._mul(self._flat(u[j]), BT)
-        return dx
+            if BT is not None:
+                term = BT(self._flat(u[j]))
+                dx = term if dx is None else dx + term
+        return dx if dx is not None else np.zeros_like(x)
+
+
+#: a matrix with at least this many entries and at most SPARSE_DENSITY of them nonzero is
+#: applied as a scipy.sparse matrix (an Integrator of 2000 states has A = 0 and C = I: dense,
+#: every call would read 32 MB to compute x)
+SPARSE_MIN_SIZE = 1 << 16
+SPARSE_DENSITY = 0.05
+
+
+def _operator(MT: np.ndarray, batched: bool):
+    """``v -> v @ MT`` (v is (B, n)) in the cheapest exact structure: None for a zero
+    matrix, a copy for the identity, a scaling for a diagonal, scipy.sparse for a large
+    sparse matrix, else the dense product.  Batched matrices (B, n, m) stay dense."""
+    if batched:
+        return lambda v: np.matmul(v[:, None, :], MT)[:, 0, :]
+    if not MT.any():
+        return None
+    n, m = MT.shape
+    if n == m and n > 1:
+        diag = np.diagonal(MT)
+        if np.count_nonzero(MT) == np.count_nonzero(diag):
+            if (diag == 1).all():
+                return lambda v: np.array(v, dtype=float)
+            d = diag.copy()
+            return lambda v: v * d
+    if MT.size >= SPARSE_MIN_SIZE and np.count_nonzero(MT) <= SPARSE_DENSITY * MT.size:
+        from scipy import sparse
+        S = sparse.csr_matrix(MT.T)
+        return lambda v: np.asarray((S @ v.T).T)
+    return lambda v: v @ MT
 
 
 def observer_form(den, nums):
@@ -252,6 +282,14 @@ def plan_fusion(schedule: list, signal_shapes: list, constants: dict) -> FusionP
     fused matrices would be too large.  ``schedule`` lists the compiler's Steps."""
     forms = {i: f for i, f in ((i, linear_form_of(st.block)) for i, st in enumerate(schedule))
              if f is not None}
+    n_fused_states = sum(schedule[i].state.stop - schedule[i].state.start for i in forms
+                         if schedule[i].state is not None)
+    batch = max([f.A.shape[0] for f in forms.values() if f.A is not None] + [1])
+    if batch * n_fused_states ** 2 > MAX_FUSED_ELEMENTS:
+        # one dense (B, N, N) state matrix would be wasteful (12 GiB for 40 000 integrator
+        # states): fuse the stateless blocks only; the others keep their own, block-sized
+        # derivative calls
+        forms = {i: f for i, f in forms.items() if schedule[i].state is None}
     if not forms:
         return None
     # the fused states must form one slice (the compiler lays them out so)
@@ -264,7 +302,8 @@ def plan_fusion(schedule: list, signal_shapes: list, constants: dict) -> FusionP
         stop = sl.stop
     width = stop - start
     try:
-        return _Planner(schedule, forms, signal_shapes, constants, start, width).run()
+        with np.errstate(all="ignore"):        # huge gains multiply to inf, as they would
+            return _Planner(schedule, forms, signal_shapes, constants, start, width).run()
     except _TooLarge:
         return None
 

@@ -75,8 +75,10 @@ class _Source:
         self.lines.append("    " * indent + text)
 
 
-def build_program(d, n_rows: int, fuse: bool = True) -> Program:
-    """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows."""
+def build_program(d, n_rows: int, fuse: bool = True, alloc=None) -> Program:
+    """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows.
+    ``alloc(shape)`` makes each log array (default: in memory, NaN-filled;
+    ``fwdstep.budgets.disk_allocator`` streams the log to disk)."""
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -188,7 +190,8 @@ def build_program(d, n_rows: int, fuse: bool = True) -> Program:
     record = ["t_log[row] = t"]
     for sig_name in d.logged:
         idx = d.signal_index[sig_name]
-        arr = np.full((n_rows, B) + shapes[idx], np.nan)
+        arr = (alloc((n_rows, B) + shapes[idx]) if alloc is not None else
+               np.full((n_rows, B) + shapes[idx], np.nan))
         logs.append(arr)
         record.append(f"{src.const('log', arr)}[row] = {read(idx)}")
 

@@ -140,7 +140,8 @@ def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
 
 
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
-             fuse: bool = True, backend: str | None = None) -> Result:
+             fuse: bool = True, backend: str | None = None,
+             log_dir: str | None = None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -152,8 +153,14 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
     ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
     ``fwdstep.backend_numba``; single runs only).
+    ``log_dir``: record into memory-mapped files in that directory instead of memory
+    (``fwdstep run --log-to-disk``; NumPy backend).  The size is checked by the caller
+    (``fwdstep.budgets.check_log``).
     """
     cfg = d.spec.simulation
+    if log_dir is not None and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
+        raise ConfigError("--log-to-disk works with the numpy backend and the fixed-step "
+                          "solvers only", file=d.file)
     if cfg.solver in IVP_METHODS:
         if (backend or cfg.backend) == "compiled":
             raise ConfigError(f"solver '{cfg.solver}' runs through scipy's solve_ivp; it has no "
@@ -176,7 +183,11 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     wall0 = _time.perf_counter()
 
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
-    prog = build_program(d, n_rows, fuse=fuse)
+    alloc = None
+    if log_dir is not None:
+        from .budgets import disk_allocator
+        alloc = disk_allocator(log_dir)
+    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc)
     x = prog.xn
     x[...] = d.x0
     first, first_record, rest = prog.first, prog.first_record, prog.rest

@@ -252,3 +252,94 @@ def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, 
                                        "written; they are complete\n")
     assert listing(outdir) == ["manifest.json", "result.npz", "summary.json"]
     assert json.loads((outdir / "summary.json").read_text())["status"] == "ok"
+
+
+# ------------------------------------------------------------------ budgets
+HUGE_LOG = """\
+blocks:
+  src: {type: Constant, value: "ones(1000)"}
+  int: {type: Integrator, shape: [1000]}
+connections:
+  - src.y -> int.u
+simulation: {t_final: 1000, step: 1.0e-4}
+"""
+
+# 10 001 rows x (100 + 100 + 1) values x 8 bytes = 16 081 608 bytes = 15.3 MiB
+SMALL_LOG = HUGE_LOG.replace("1000)", "100)").replace("[1000]", "[100]").replace(
+    "t_final: 1000", "t_final: 1")
+
+
+@pytest.mark.parametrize("verb", ["validate", "run"])
+def test_log_budget_is_checked_before_allocation_with_the_number(tmp_path, capsys, verb):
+    path = write(tmp_path, HUGE_LOG)
+    extra = ["-o", str(tmp_path / "out")] if verb == "run" else []
+    assert cli.main([verb, path, *extra]) == 2
+    assert capsys.readouterr().err == (
+        f"fwdstep: {path}: the log needs 149.1 GiB (10000001 rows x 2001 values x 8 bytes), "
+        "more than the 2.0 GiB allowed in memory: log less (--set simulation.log_every=K, or "
+        "fewer signals under log:), raise the limit (--max-log-memory) or stream it to disk "
+        "(--log-to-disk)\n")
+    assert not (tmp_path / "out").exists()
+    # logging less is the way out: every 10 000th step is 1 001 rows, 16 MB
+    assert cli.main(["validate", path, "--set", "simulation.log_every=10000"]) == 0
+
+
+def test_log_budget_option_and_streaming_to_disk_give_the_same_result(tmp_path, capsys):
+    path = write(tmp_path, SMALL_LOG)
+    assert cli.main(["run", path, "-o", str(tmp_path / "a"), "-q", "--no-plots",
+                     "--max-log-memory", "15MiB"]) == 2
+    assert "the log needs 15.3 MiB (10001 rows x 201 values x 8 bytes), more than the " \
+           "15.0 MiB allowed" in capsys.readouterr().err
+    assert cli.main(["run", path, "-o", str(tmp_path / "a"), "-q", "--no-plots",
+                     "--max-log-memory", "16MiB"]) == 0
+    assert cli.main(["run", path, "-o", str(tmp_path / "b"), "-q", "--no-plots",
+                     "--log-to-disk", "--max-log-memory", "1MB"]) == 0
+    with np.load(tmp_path / "a" / "result.npz") as a, np.load(tmp_path / "b" / "result.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k])
+        np.testing.assert_allclose(b["int.y"][:, 0], b["t"], rtol=1e-12)
+    assert listing(tmp_path) == ["a", "b", "d.yaml"]      # the log files are gone
+
+
+def integrators(n: int, k: int) -> str:
+    """k independent Integrators of n states each, driven by ones: x(t) = t exactly."""
+    lines = ["blocks:"]
+    for i in range(k):
+        lines += [f"  src{i}: {{type: Constant, value: 'ones({n})'}}",
+                  f"  int{i}: {{type: Integrator, shape: [{n}]}}"]
+    lines.append("connections:")
+    lines += [f"  - src{i}.y -> int{i}.u" for i in range(k)]
+    lines.append("simulation: {t_final: 0.01, step: 0.001}")
+    return "\n".join(lines) + "\n"
+
+
+def test_fusion_never_builds_a_dense_state_matrix_of_every_state(tmp_path):
+    from fwdstep.linear import MAX_FUSED_ELEMENTS, plan_fusion
+    d = fwdstep.load_diagram(write(tmp_path, integrators(1500, 4)))
+    assert d.n_states ** 2 > MAX_FUSED_ELEMENTS          # 6000^2 = 3.6e7 dense: refused
+    plan = plan_fusion(d.schedule, d.signal_shapes, d.constant_signals)
+    assert plan is None or not any(f"int{i}" in plan.fused for i in range(4))
+    r = fwdstep.simulate(d)
+    for i in range(4):
+        np.testing.assert_allclose(r[f"int{i}.y"], np.repeat(r.t[:, None], 1500, axis=1),
+                                   rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("kind", ["zero", "identity", "diagonal", "sparse", "dense", "batched"])
+def test_structured_linear_products_equal_the_dense_product(kind):
+    from fwdstep.linear import _operator
+    rng = np.random.default_rng(3)
+    n = 300
+    M = {"zero": np.zeros((n, n)), "identity": np.eye(n), "diagonal": np.diag(rng.normal(size=n)),
+         "sparse": np.where(rng.random((n, n)) < 0.01, rng.normal(size=(n, n)), 0.0),
+         "dense": rng.normal(size=(n, 7)), "batched": rng.normal(size=(2, n, 4))}[kind]
+    v = rng.normal(size=(2, n))
+    op = _operator(M, batched=kind == "batched")
+    expected = np.matmul(v[:, None, :], M)[:, 0, :] if kind == "batched" else v @ M
+    if kind == "zero":
+        assert op is None
+    else:
+        got = op(v)
+        assert got.shape == expected.shape and got is not v
+        np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
