@@ -11,14 +11,15 @@ from .compiler import CompiledDiagram, compile_batch, load_diagram
 from .errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, DiagramError,
                      DivergenceError, ExpressionError, FwdstepError, OutputError, ParameterError,
                      ShapeError, SimulationError, UnknownBlockTypeError, WiringError, YamlError)
-from .result import Result
+from .result import Result, load_result
 from .simulate import SimulationInterrupted, simulate
+from .compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
 
 __all__ = [
     "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
     "FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
     "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
     "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
-    "SimulationInterrupted",
+    "SimulationInterrupted", "load_result", "compare",
 ]
 __version__ = "0.1.0"

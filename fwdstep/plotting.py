@@ -246,11 +246,12 @@ def panel_figure(result: Result, panels: list, title: str = "", subtitle: str = 
         draw_panel(ax, result, infos, variants, log=log)
         if log:
             ax.set_yscale("log")
+        absolute = log or result.batch > 1          # what is drawn: |component| or |signal|
         units = {i.unit for i in infos}
         if len(infos) == 1:
-            ylabel = infos[0].axis_label(log)
+            ylabel = infos[0].axis_label(absolute)
         else:
-            names = ", ".join(f"|{i.label}|" if log else i.label for i in infos)
+            names = ", ".join(f"|{i.label}|" if absolute else i.label for i in infos)
             ylabel = names + (f" [{units.pop()}]" if len(units) == 1 and "" not in units else "")
         ax.set_ylabel(ylabel if len(ylabel) <= 45 else textwrap.fill(ylabel, 30), fontsize=9)
         time_axis(ax, result.t)
@@ -288,15 +289,43 @@ def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False
         return drawn
     chosen = list(variants) if variants is not None else list(range(result.batch))
     colors = line_colors(len(chosen))
+    names = variant_names(result)
     for k, info in enumerate(infos):
         data = result[info.name]
         for c, b in enumerate(chosen):
             flat = data[:, b].reshape(len(t), -1)
             norm = np.sqrt(np.sum(flat ** 2, axis=1))
             ax.plot(t, norm, lw=1.0, ls=_STYLES[k % 4], color=colors[c],
-                    label=f"|{info.label}|, variant {b}")
+                    label=(f"{info.label}: " if len(infos) > 1 else "") + names[b])
             drawn += 1
     return drawn
+
+
+def variant_names(result: Result) -> list:
+    """'alpha = 3, K = 20' per variant of a batch: the parameters that differ between them."""
+    params = getattr(result.diagram, "variant_parameters", None) or []
+    if len(params) != result.batch:
+        return [f"variant {b}" for b in range(result.batch)]
+    keys = [k for k in params[0]
+            if any(_differ(p.get(k), params[0].get(k)) for p in params[1:])]
+    if not keys:
+        return [f"variant {b}" for b in range(result.batch)]
+    return [", ".join(f"{k} = {_short(p.get(k))}" for k in keys[:3]) for p in params]
+
+
+def _differ(a, b) -> bool:
+    try:
+        return not np.array_equal(np.asarray(a), np.asarray(b))
+    except (TypeError, ValueError):
+        return a != b
+
+
+def _short(value) -> str:
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        return f"{float(arr):g}" if np.issubdtype(arr.dtype, np.number) else str(value)
+    text = np.array2string(arr, precision=3, separator=", ")
+    return text if len(text) <= 30 else text[:28] + "…"
 
 
 def plot_result(result: Result, outdir: str, variants: list | None = None,

@@ -138,7 +138,9 @@ class Result:
             sigs = [signals] if isinstance(signals, str) else list(signals)
             for s in sigs:
                 self._key(s)
-            return panel_figure(self, [(sigs, scale)], ", ".join(sigs), variants=variants)
+            from .plotting import signal_info
+            title = ", ".join(signal_info(self, s).label for s in sigs)
+            return panel_figure(self, [(sigs, scale)], title, variants=variants)
         if figure is not None:
             return result_figures(self, variants, [figure])[figure]
         return result_figures(self, variants)

@@ -135,7 +135,8 @@ def test_a_batch_draws_every_variant(tmp_path):
     r = fwdstep.simulate(fwdstep.compile_batch(specs))
     ax = result_figures(r)["decay"].axes[0]
     assert len(ax.lines) == 11
-    assert _legend(ax)[-1] == "|x.y|, variant 10"
+    assert _legend(ax)[-1] == "g = -1.1"
+    assert ax.get_ylabel() == "|x.y|"
     assert np.allclose(ax.lines[3].get_ydata(), np.linalg.norm(r["x.y"][:, 3], axis=1))
 
 
