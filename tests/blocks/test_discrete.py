@@ -37,15 +37,25 @@ def _load(tmp_path, text, **overrides):
     return fwdstep.load_diagram(str(path), overrides=overrides or None)
 
 
-def _between_samples(t, xs, T, offset=0.0, u_before=0.0, x0=None):
-    """The exact continuous state at t: from the last sample, a constant input K x_k."""
+def _flow(tau):
+    """exp([[A, B], [0, 0]] tau), the plant's exact flow with a constant input (closed form
+    of the double integrator's; equal to scipy.linalg.expm, checked below)."""
+    return np.array([[1.0, tau, tau * tau / 2], [0.0, 1.0, tau], [0.0, 0.0, 1.0]])
+
+
+def test_the_closed_form_flow_is_expm():
     M = np.zeros((3, 3))
     M[:2, :2], M[:2, 2:] = A, B
+    np.testing.assert_allclose(_flow(0.0137), expm(M * 0.0137), rtol=0, atol=1e-15)
+
+
+def _between_samples(t, xs, T, offset=0.0, u_before=0.0, x0=None):
+    """The exact continuous state at t: from the last sample, a constant input K x_k."""
     k = int(np.floor((t - offset) / T + 1e-9))
     if k < 0:
-        E = expm(M * t)
+        E = _flow(t)
         return E[:2, :2] @ x0 + E[:2, 2] * u_before
-    E = expm(M * (t - offset - k * T))
+    E = _flow(t - offset - k * T)
     return E[:2, :2] @ xs[k] + E[:2, 2:] @ (K @ xs[k])
 
 
@@ -65,9 +75,7 @@ def test_sampled_pd_loop_is_its_exact_discretisation(tmp_path, h, t_final):
 def test_sample_offset_holds_the_initial_output_until_the_first_sample(tmp_path):
     T, off = 0.01, 0.0042
     Ad, Bd, *_ = cont2discrete((A, B, np.eye(2), np.zeros((2, 1))), T, method="zoh")
-    M = np.zeros((3, 3))
-    M[:2, :2], M[:2, 2:] = A, B
-    x_first = expm(M * off)[:2, :2] @ np.array([1.0, 0.5])       # u = 0 before the sample
+    x_first = _flow(off)[:2, :2] @ np.array([1.0, 0.5])          # u = 0 before the sample
     xs = [x_first]
     for _ in range(60):
         xs.append((Ad + Bd @ K) @ xs[-1])
