@@ -78,7 +78,8 @@ class SimulationConfig:
     backend: str = "numpy"
     rtol: float = 1e-8           # dop853 / radau / lsoda only (fwdstep.ivp)
     atol: float = 1e-10
-    defaulted: tuple = ()       # settings the diagram did not give (shown in the run's header)
+    defaulted: tuple = ()       # t_final/step the diagram did not give (the run's header says)
+    given: bool = True          # the diagram has a simulation: section
 
     @property
     def n_steps(self) -> int:
@@ -686,10 +687,22 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
     return doc
 
 
+def defaults_note(sim: SimulationConfig) -> str | None:
+    """The run header's line for simulation settings a diagram did not give, or None."""
+    if not sim.defaulted:
+        return None
+    values = {"t_final": f"t_final = {sim.t_final:g} s", "step": f"step = {sim.step:g} s"}
+    given = "no simulation: section" if not sim.given else \
+        f"no simulation.{', simulation.'.join(sim.defaulted)}"
+    return f"the diagram has {given}; using the defaults " + \
+        ", ".join(values[k] for k in sim.defaulted)
+
+
 def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
     raw = _mapping(doc.get("simulation"), "simulation", file, _line(doc, "simulation"))
     cfg = SimulationConfig()
-    cfg.defaulted = tuple(k for k in ("t_final", "step", "solver") if k not in raw)
+    cfg.defaulted = tuple(k for k in ("t_final", "step") if k not in raw)
+    cfg.given = doc.get("simulation") is not None
     for key in raw:
         if key not in SIMULATION_KEYS:
             raise ConfigError(f"simulation has no setting '{key}'; settings are: "
@@ -758,14 +771,6 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
     return cfg
 
 
-def split_overrides(overrides: dict, parameters) -> tuple:
-    """``--set`` names -> (top-level parameters, simulation settings, log list or None,
-    block/subsystem paths ``{("plant", "arm", "q0"): value}``)."""
-    params, sim, log, paths = {}, {}, None, {}
-    for name, value in (overrides or {}).items():
-        if name == "log" and "log" not in (parameters or {}):
-            log = value if isinstance(value, list) else [value]
-        elif name.startswith("simulation."):
 def count_blocks(path: str, doc, search: SearchPath, cache: dict | None,
                  memo: dict | None = None, stack: tuple = ()) -> int:
     """Blocks of ``doc`` after subsystem expansion, counted from the files alone (each parsed
@@ -801,6 +806,14 @@ def count_blocks(path: str, doc, search: SearchPath, cache: dict | None,
     return total
 
 
+def split_overrides(overrides: dict, parameters) -> tuple:
+    """``--set`` names -> (top-level parameters, simulation settings, log list or None,
+    block/subsystem paths ``{("plant", "arm", "q0"): value}``)."""
+    params, sim, log, paths = {}, {}, None, {}
+    for name, value in (overrides or {}).items():
+        if name == "log" and "log" not in (parameters or {}):
+            log = value if isinstance(value, list) else [value]
+        elif name.startswith("simulation."):
             sim[name.split(".", 1)[1]] = value
         elif "." in name:
             paths[tuple(name.split("."))] = value
@@ -833,6 +846,7 @@ def load_spec(path: str, overrides: dict | None = None,
 
 
 def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -> DiagramSpec:
+    cache = {} if cache is None else cache     # a subsystem used many times is parsed once
     doc = _read_document(path, cache)
     budget = Budget()
     overrides, sim_overrides, log_override, paths = split_overrides(
@@ -841,7 +855,6 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                             line=_line(doc, "parameters"), budget=budget)
     if sim_overrides or log_override is not None:  # --set simulation.t_final=20, --set log=[..]
         original, doc = doc, LineDict(doc)
-    cache = {} if cache is None else cache     # a subsystem used many times is parsed once
         doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
     if sim_overrides:
         sim_raw = _mapping(doc.get("simulation"), "simulation", path, _line(doc, "simulation"))
@@ -851,6 +864,11 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
         doc["simulation"] = merged
     if log_override is not None:
         doc["log"] = log_override
+    search = SearchPath(path)
+    total = count_blocks(path, doc, search, cache)
+    if total > MAX_BLOCKS:
+        raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
+                          f"limit is {MAX_BLOCKS}", file=path, line=_line(doc, "blocks"))
     level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
                    sets=paths, errors=errors, budget=budget, search=search)
     level.expand()
@@ -859,11 +877,6 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
         sim = _simulation(doc, ns, path)
     except DiagramError as exc:
         errors.append(exc)
-    search = SearchPath(path)
-    total = count_blocks(path, doc, search, cache)
-    if total > MAX_BLOCKS:
-        raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
-                          f"limit is {MAX_BLOCKS}", file=path, line=_line(doc, "blocks"))
     lines, signal_info = {}, {}
     log = doc.get("log")
     if log is not None:
