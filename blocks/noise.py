@@ -129,7 +129,10 @@ class WhiteNoise(Block):
                          params=("seed", "sigma", "mean", "sample_time", "channel"))
 
     def discontinuities(self, t_final: float) -> np.ndarray:
-        """The sample instants k Ts, k = 0, 1, ..., up to t_final (each Ts of the batch)."""
+        """The sample instants k Ts, k = 0, 1, ..., up to t_final (each Ts of the batch); none
+        when every variance is 0 (the signal is then the constant mean)."""
+        if not np.any(self.p.sigma):
+            return np.zeros(0)
         out = []
         for ts in np.unique(self.p.sample_time):
             count = math.floor(t_final / ts + 1e-9) + 1

@@ -180,3 +180,21 @@ def test_bad_parameters_are_refused():
         WhiteNoise("w", psd=-1.0, sample_time=0.1)
     with pytest.raises(ParameterError, match="'psd' must be a number or 2 numbers"):
         WhiteNoise("w", n=2, psd=[1.0, 2.0, 3.0], sample_time=0.1)
+
+
+def test_shipped_measurement_noise_variant_without_noise_is_the_original_diagram():
+    import os
+    here = os.path.join(os.path.dirname(__file__), "..", "..", "diagrams")
+    short = {"t_final": 0.1}
+    plain = fwdstep.simulate(fwdstep.load_diagram(os.path.join(here, "theorem3.yaml"),
+                                                  overrides=short))
+    quiet = fwdstep.simulate(fwdstep.load_diagram(
+        os.path.join(here, "theorem3_measurement_noise.yaml"),
+        overrides={**short, "noise_psd_q": 0.0, "noise_psd_qdot": 0.0}))
+    # the same up to rounding (q + 0 passes through one more Sum, fused with the others)
+    np.testing.assert_allclose(quiet["e.y"], plain["e.y"], rtol=1e-13, atol=1e-15)
+    noisy = fwdstep.simulate(fwdstep.load_diagram(
+        os.path.join(here, "theorem3_measurement_noise.yaml"), overrides=short))
+    w = noisy["w_q.y"]
+    assert np.std(w) == pytest.approx(math.sqrt(1e-8 / 1e-3), rel=0.25)
+    assert 0 < np.max(np.abs(noisy["e.y"] - plain["e.y"])) < 0.01   # felt, not dominant
