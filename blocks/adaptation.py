@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep.block import MAX_SIGNAL_SIZE, Block, Param
+from fwdstep import kernelops as ko
+from fwdstep.block import MAX_SIGNAL_SIZE, Block, Param, as_written
 from fwdstep.errors import ParameterError
 from fwdstep.registry import register
 
@@ -56,29 +57,35 @@ class AdaptationLaw(Block):
         self.require_size("n * p (regressor size)", n * p, MAX_SIGNAL_SIZE)
 
         G = np.asarray(gamma, dtype=float)
-        bad = ParameterError(f"block {self.name!r} parameter 'gamma' must be a positive number, "
-                             f"{p} positive numbers, or a symmetric positive definite "
-                             f"{p}x{p} matrix, got shape {G.shape}", block=self.name)
+
+        def bad(what: str) -> ParameterError:
+            # say what is wrong with the value, not only what is expected
+            return ParameterError(f"block {self.name!r} parameter 'gamma' {what} (it must be a "
+                                  f"positive number, {p} positive numbers, or a symmetric "
+                                  f"positive definite {p}x{p} matrix)", block=self.name)
         if G.size == 1 and G.ndim <= 2:
             G = G.reshape(())
         if G.ndim == 0 or G.ndim == 1:
             if G.ndim == 1 and G.shape != (p,):
-                raise bad
+                raise bad(f"has {G.size} numbers, not 1 or {p}")
             if np.any(G <= 0.0):
-                raise bad
+                if G.ndim == 0:
+                    raise bad(f"is {as_written(G)}, not positive")
+                k = int(np.flatnonzero(G <= 0.0)[0])
+                raise bad(f"entry {k + 1} is {as_written(G[k])}, not positive")
             self._matrix_gain = False
             self.set_param("gamma", np.broadcast_to(G, (1,)) if G.ndim == 0 else G)  # (1, 1|p)
         elif G.shape == (p, p):
             if not np.allclose(G, G.T, rtol=0.0, atol=1e-12 * np.max(np.abs(G))):
-                raise bad
+                raise bad("is not symmetric")
             try:
                 np.linalg.cholesky(G)
             except np.linalg.LinAlgError:
-                raise bad from None
+                raise bad("is symmetric but not positive definite") from None
             self._matrix_gain = True
             self.set_param("gamma_T", G.T)                                        # (1, p, p)
         else:
-            raise bad
+            raise bad(f"is an array of shape {'x'.join(map(str, G.shape))}, not {p}x{p}")
 
         t0 = np.asarray(theta0, dtype=float)
         if t0.size == 1:

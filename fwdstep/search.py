@@ -9,7 +9,7 @@ A subsystem's ``file: NAME`` (a relative path, ``/`` as separator) is looked up 
 
 The first candidate that exists wins.  Includes are confined: a candidate is used only when it
 lies (after resolving ``..`` and symbolic links) inside the top-level diagram's folder tree,
-the shipped library or a ``FWDSTEP_PATH`` folder; absolute names are refused.  Only regular
+the shipped library or a ``FWDSTEP_PATH`` folder (an absolute name too).  Only regular
 files are read (never a FIFO, a device such as ``/dev/zero``, a socket or a directory), for
 the top-level diagram as well, so nothing can hang or stream without end.
 """
@@ -98,6 +98,8 @@ class SearchPath:
         """(label, path) in search order for ``file: name``."""
         here = os.path.dirname(including_file)
         out = [("next to the diagram", os.path.normpath(os.path.join(here, name)))]
+        if os.path.isabs(name):       # allowed only inside the roots (checked by the caller)
+            return out
         if self.library and name.startswith(LIBRARY_PREFIX):
             out.append(("in fwdstep's library", os.path.normpath(
                 os.path.join(self.library, name[len(LIBRARY_PREFIX):]))))
@@ -108,10 +110,10 @@ class SearchPath:
     def resolve(self, name: str, including_file: str, what: str, line) -> str:
         """The file ``file: name`` of ``including_file`` stands for; ConfigError otherwise.
         Messages name the places looked in, never the content of any file."""
-        if os.path.isabs(name) or name.startswith("~") or "\\" in name:
-            raise ConfigError(f"{what}: file '{name}' must be a relative path with '/' "
-                              f"(found next to the diagram, in fwdstep's library as lib/NAME, "
-                              f"or in {PATH_VARIABLE})", file=including_file, line=line)
+        if name.startswith("~") or "\\" in name:
+            raise ConfigError(f"{what}: file '{name}' must be a path with '/' relative to the "
+                              f"diagram, the library (lib/NAME) or {PATH_VARIABLE}",
+                              file=including_file, line=line)
         tried, refused = [], False
         for label, path in self.candidates(name, including_file):
             if not self.allowed(path):

@@ -156,8 +156,8 @@ CASES = [
     ("spec_block_fanout", ConfigError, 2,
      "the diagram would have 160000 blocks after subsystem expansion; the limit is 10000"),
     ("spec_include_absolute", ConfigError, 2,
-     "subsystem 'plant': file '/etc/passwd' must be a relative path with '/' (found next to "
-     "the diagram, in fwdstep's library as lib/NAME, or in FWDSTEP_PATH)"),
+     "subsystem 'plant': file '/etc/passwd' leaves the diagram's folder; subsystems come from "
+     "the diagram's folder tree, fwdstep's library (lib/NAME) or a folder in FWDSTEP_PATH"),
     ("spec_include_outside", ConfigError, 2,
      "subsystem 'plant': file '../../../../../../etc/passwd' leaves the diagram's folder; "
      "subsystems come from the diagram's folder tree, fwdstep's library (lib/NAME) or a folder "

@@ -123,10 +123,57 @@ def test_validate_reports_every_mistake_one_line_each(tmp_path, capsys):
 
 
 def test_a_missing_simulation_section_is_stated(tmp_path):
+    from fwdstep.spec import defaults_note
     path = tmp_path / "nosim.yaml"
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\n")
     spec = load_spec(str(path))
-    assert spec.simulation.defaulted == ("t_final", "step", "solver")
+    assert spec.simulation.defaulted == ("t_final", "step")
     assert (spec.simulation.t_final, spec.simulation.step) == (10.0, 1e-3)
+    assert defaults_note(spec.simulation) == ("the diagram has no simulation: section; using "
+                                              "the defaults t_final = 10 s, step = 0.001 s")
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\nsimulation: {t_final: 1}\n")
-    assert load_spec(str(path)).simulation.defaulted == ("step", "solver")
+    assert defaults_note(load_spec(str(path)).simulation) == (
+        "the diagram has no simulation.step; using the defaults step = 0.001 s")
+    path.write_text("blocks:\n  c: {type: Constant, value: 1}\n"
+                    "simulation: {t_final: 1, step: 0.5}\n")
+    assert defaults_note(load_spec(str(path)).simulation) is None
+
+
+def test_metrics_give_the_norm_and_the_largest_joint_separately(tmp_path):
+    """e(t) = [t, -2 t] on [0, 1]: |e|_2 = sqrt(5) t, the largest joint error is 2 t."""
+    import numpy as np
+    path = tmp_path / "ramp.yaml"
+    path.write_text("blocks:\n  c: {type: Constant, value: [1, -2]}\n"
+                    "  x: {type: Integrator, shape: [2]}\nconnections: [c.y -> x.u]\n"
+                    "simulation: {t_final: 1, step: 0.01}\nmetrics: {error: x.y, tail: 0.2}\n")
+    m = fwdstep.simulate(fwdstep.load_diagram(str(path))).metrics()
+    t = np.linspace(0, 1, 101)
+    assert m["final_error_norm"] == pytest.approx(np.sqrt(5), rel=1e-12)
+    assert m["final_error_max_abs"] == pytest.approx(2, rel=1e-12)
+    assert m["tail_error_norm_max"] == pytest.approx(np.sqrt(5), rel=1e-12)
+    assert m["tail_error_max_abs"] == pytest.approx(2, rel=1e-12)
+    assert m["tail_error_max_abs_by_component"] == pytest.approx([1, 2], rel=1e-12)
+    assert m["rms_error_norm"] == pytest.approx(np.sqrt(5 * np.mean(t ** 2)), rel=1e-12)
+    assert m["tail_max_abs_error"] == m["tail_error_norm_max"]      # the old name, same number
+
+
+@pytest.mark.parametrize("gamma, what", [
+    (0, "is 0, not positive"),
+    ([1, -2], "entry 2 is -2, not positive"),
+    ([1, 2, 3], "has 3 numbers, not 1 or 2"),
+    ([[1, 2], [0, 1]], "is not symmetric"),
+    ([[1, 2], [2, 1]], "is symmetric but not positive definite"),
+    ([[1, 0, 0]], "is an array of shape 1x3, not 2x2"),
+])
+def test_adaptation_gain_messages_say_what_is_wrong_with_the_value(tmp_path, gamma, what):
+    path = tmp_path / "adapt.yaml"
+    path.write_text("blocks:\n  W: {type: Constant, value: [[1, 0], [0, 1]]}\n"
+                    "  e: {type: Constant, value: [0, 0]}\n"
+                    "  adapt: {type: AdaptationLaw, regressor_shape: [2, 2], gamma: 1}\n"
+                    "connections: [W.y -> adapt.W, e.y -> adapt.e]\n"
+                    "simulation: {t_final: 1, step: 0.5}\n")
+    with pytest.raises(fwdstep.ParameterError) as info:
+        fwdstep.load_diagram(str(path), {"adapt.gamma": gamma})
+    assert str(info.value) == (f"{path}:4: block 'adapt' parameter 'gamma' {what} (it must be "
+                               "a positive number, 2 positive numbers, or a symmetric positive "
+                               "definite 2x2 matrix)")
