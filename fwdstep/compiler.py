@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import weakref
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
@@ -76,19 +77,34 @@ def structure_signature(blocks: list) -> tuple:
     port shapes, the shapes of the stacked ``p`` arrays, and the values of non-numeric
     parameters (a variant name or a flag may pick a different code path inside a block, which
     stacking numbers could not express)."""
-    sig = []
-    for b in blocks:
-        decls = type(b).params
-        structural = tuple(sorted(
-            (k, repr(v)) for k, v in getattr(b, "values", {}).items()
-            if k in decls and decls[k].kind in STRUCTURAL_KINDS
-            and k not in getattr(type(b), "stacked_params", ())))
-        sig.append((b.name, type(b).__name__, b.n_states,
-                    tuple((p.name, p.shape) for p in b.inputs.values()),
-                    tuple((p.name, p.shape) for p in b.outputs.values()),
-                    tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
-                    structural, setup_state(b)))
-    return tuple(sig)
+    return tuple(_block_signature(b) for b in blocks)
+
+
+#: block -> its signature; blocks are descriptions that never change after setup, and a
+#: sweep shares one instance between the variants that agree on it
+_signatures: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _block_signature(b) -> tuple:
+    try:
+        return _signatures[b]
+    except (KeyError, TypeError):
+        pass
+    decls = type(b).params
+    structural = tuple(sorted(
+        (k, repr(v)) for k, v in getattr(b, "values", {}).items()
+        if k in decls and decls[k].kind in STRUCTURAL_KINDS
+        and k not in getattr(type(b), "stacked_params", ())))
+    sig = (b.name, type(b).__name__, b.n_states,
+           tuple((p.name, p.shape) for p in b.inputs.values()),
+           tuple((p.name, p.shape) for p in b.outputs.values()),
+           tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
+           structural, setup_state(b))
+    try:
+        _signatures[b] = sig
+    except TypeError:                  # a block type that cannot be weakly referenced
+        pass
+    return sig
 
 
 #: block attributes that stacking handles per variant (or that never change the numbers)

@@ -60,6 +60,7 @@ import io
 import json
 import math
 import os
+import pickle
 import re
 import shutil
 import signal
@@ -200,6 +201,16 @@ class BatchJob:
     traces: frozenset
     values: list                  # the swept values of each variant (for the parts)
 
+    def __getstate__(self) -> dict:
+        """Sent to a worker without the blocks (they may hold unpicklable closures); the
+        worker builds them again from the specs (``instantiate_variants``)."""
+        return {**self.__dict__, "blocks": None}
+
+    def variant_blocks(self) -> list:
+        if self.blocks is None:
+            self.blocks = instantiate_variants(self.specs, {})
+        return self.blocks
+
 
 def settings_key(spec) -> tuple:
     """Everything in a diagram spec that may change a variant's numbers besides its blocks:
@@ -207,8 +218,12 @@ def settings_key(spec) -> tuple:
     ...) except the parameters (which reach the numbers only through the blocks) and the
     blocks themselves (``structure_signature``).  Fields are read, never listed, so settings
     added later are included."""
-    return tuple((f.name, _value_key(_plain(getattr(spec, f.name))))
-                 for f in dataclasses.fields(spec) if f.name not in ("parameters", "blocks"))
+    rest = [(f.name, getattr(spec, f.name)) for f in dataclasses.fields(spec)
+             if f.name not in ("parameters", "blocks")]
+    try:            # equal bytes: equal content (unequal bytes only split a batch further)
+        return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)
+    except (pickle.PicklingError, TypeError, AttributeError):
+        return tuple((name, _value_key(_plain(value))) for name, value in rest)
 
 
 def _plain(value):
@@ -328,7 +343,7 @@ def _run_members(job: BatchJob, members: list) -> list:
     """Outcome dicts for ``members`` (positions in the job) run as one batch."""
     specs = [job.specs[k] for k in members]
     try:
-        d = compile_variants(specs, [job.blocks[k] for k in members])
+        d = compile_variants(specs, [job.variant_blocks()[k] for k in members])
     except DiagramError as exc:        # a variant's wiring does not hold (e.g. a new port)
         if len(members) > 1:
             return [o for k in members for o in _run_members(job, [k])]
@@ -574,14 +589,12 @@ def _numeric(values: list):
 
 def plot_sweep(result: SweepResult, outdir: str) -> str:
     """sweep.png: the tail metric against each swept parameter, and |e|(t) traces."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .plotting import figure_bytes, finish_figure, line_colors, new_figure, place_legend
 
     ok = [v for v in result.variants if v.metrics]
     n_panels = len(result.names) + 1
-    fig, axes = plt.subplots(n_panels, 1, figsize=(8, 2.8 * n_panels + 0.6), squeeze=False)
-    axes = axes[:, 0]
+    # the run figures' style (fwdstep.plotting): no pyplot, the caller's backend untouched
+    fig, axes = new_figure(n_panels, sharex=False, height=2.8 * n_panels + 0.9)
     for ax, name in zip(axes, result.names):
         raw = [v.values[name] for v in ok]
         x = _numeric(raw)
@@ -613,25 +626,23 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
         ax.set_xlabel(name)
         ax.set_ylabel(f"|{result.metric_signal}|")
         ax.grid(True, alpha=0.3, which="both")
-        if len(ax.get_legend_handles_labels()[0]) <= 12:
-            ax.legend(fontsize=6, loc="best")
+        place_legend(ax)
     ax = axes[-1]
-    for i, (t, norm) in sorted(result.traces.items()):
-        ax.semilogy(t, np.maximum(norm, 1e-300), lw=1,
+    traces = sorted(result.traces.items())
+    for color, (i, (t, norm)) in zip(line_colors(len(traces)), traces):   # one colour each
+        ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color,
                     label=_describe(result.variants[i].values, result.names))
-    ax.set_xlabel("t [s]")
+    ax.set_xlabel("$t$ [s]")
     ax.set_ylabel(f"|{result.metric_signal}|(t)")
     ax.grid(True, alpha=0.3, which="both")
-    if result.traces:
-        ax.legend(fontsize=6, loc="best")
-    fig.suptitle(f"sweep of {os.path.basename(result.diagram)}: {len(result.variants)} "
-                 f"variants", fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
+    place_legend(ax)
+    if 0 < len(traces) < len(result.variants):          # say so: never a silent selection
+        ax.set_title(f"{len(traces)} of {len(result.variants)} variants drawn", fontsize=8)
+    finish_figure(fig, f"Sweep of {os.path.basename(result.diagram)}: "
+                       f"{len(result.variants)} variants")
+    data = figure_bytes(fig, "png")
     path = safe_path(outdir, FIGURE_FILE)
-    atomic_write(path, lambda fh: fh.write(buf.getvalue()), binary=True)
+    atomic_write(path, lambda fh: fh.write(data), binary=True)
     return path
 
 
