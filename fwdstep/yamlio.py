@@ -9,15 +9,24 @@ refused before they are read.
 from __future__ import annotations
 
 import os
+import re
 
 import yaml
 
-from .errors import YamlError
+from .errors import YamlError, printable
 
 MAX_FILE_BYTES = 1 << 20          # 1 MiB: a diagram is text written by a person
 MAX_EXPANDED_NODES = 200_000      # nodes after alias expansion
 MAX_DEPTH = 64                    # nesting of mappings and lists
 MAX_INTEGER_DIGITS = 400          # a float holds at most ~309 decimal digits anyway
+MAX_NODES = 50_000                # values written in the file (a theorem diagram has ~1 000)
+
+#: characters YAML forbids (C0/C1 controls but tab/newline, DEL, U+FFFE/U+FFFF, surrogates)
+_NOT_YAML = re.compile("[^\x09\x0A\x0D\x20-\x7E\x85\xA0-\uD7FF\uE000-\uFFFD"
+                       "\U00010000-\U0010FFFF]")
+_CONTROL_NAMES = {0x00: "NUL", 0x07: "BEL", 0x08: "backspace", 0x0B: "vertical tab",
+                  0x0C: "form feed", 0x1B: "ESC", 0x7F: "DEL", 0xFFFE: "noncharacter U+FFFE",
+                  0xFFFF: "noncharacter U+FFFF"}
 
 
 class LineDict(dict):
@@ -54,6 +63,9 @@ class _DiagramLoader(yaml.SafeLoader):
     def compose_node(self, parent, index):
         # PyYAML composes recursively: bound the depth before Python's recursion limit (and
         # before the scanner's quadratic cost on thousands of open brackets) is reached
+        self._nodes = getattr(self, "_nodes", 0) + 1
+        if self._nodes > MAX_NODES:
+            raise _too_many_values(self.peek_event().start_mark.line + 1)
         self._depth += 1
         try:
             if self._depth > MAX_DEPTH:
@@ -193,6 +205,18 @@ def _value_error_line(loader: yaml.SafeLoader) -> int | None:
 
 def parse_yaml_text(text: str, file: str | None = None):
     """Parse YAML text into LineDict/LineList/scalars, with every safety check."""
+    bad = _NOT_YAML.search(text)
+    if bad is not None:
+        raise _control_character(text, bad.start(), file)
+    # PyYAML reads ~50 000 values a second: a 1 MB flow list ([1,1,1,...]) is refused from a
+    # count of separators (C speed) before parsing; the exact count is in compose_node
+    if sum(text.count(c) for c in ",\n[{") > MAX_NODES:
+        n = 0
+        for number, line in enumerate(text.split("\n"), start=1):
+            n += 1 + sum(line.count(c) for c in ",[{")
+            if n > MAX_NODES:
+                break
+        raise _too_many_values(number).located(file)
     loader = _DiagramLoader(text)
     try:
         try:
@@ -230,6 +254,24 @@ def parse_yaml_text(text: str, file: str | None = None):
                             line=_value_error_line(loader)) from None
     finally:
         loader.dispose()
+
+
+def _too_many_values(line: int) -> YamlError:
+    return YamlError(f"the document has more than {MAX_NODES} values (numbers, strings, lists, "
+                     "mappings); a diagram is limited to that: write large arrays as "
+                     "expressions such as ones(n) or eye(n)", line=line)
+
+
+def _control_character(text: str, pos: int, file: str | None) -> YamlError:
+    """The first character YAML does not allow, at its line and column (1-based)."""
+    line = text.count("\n", 0, pos) + 1
+    column = pos - (text.rfind("\n", 0, pos) + 1) + 1
+    code = ord(text[pos])
+    name = _CONTROL_NAMES.get(code, f"U+{code:04X}")
+    kind = "control character" if code < 0x20 or 0x7F <= code < 0xA0 else "character"
+    return YamlError(f"column {column}: the {kind} {printable(text[pos])} ({name}) is not "
+                     "allowed; a diagram is printable text (tabs and newlines allowed)",
+                     file=file, line=line)
 
 
 def read_yaml_file(path: str):

@@ -49,6 +49,15 @@ CASES = [
      "'blocks' must be a mapping, got a list"),
     ("comments_only", YamlError, 1,
      "the file is empty; a diagram needs at least a 'blocks:' section"),
+    ("control_character_bel", YamlError, 1,
+     "column 21: the control character \\x07 (BEL) is not allowed; a diagram is printable "
+     "text (tabs and newlines allowed)"),
+    ("control_character_esc", YamlError, 3,
+     "column 17: the control character \\x1b (ESC) is not allowed; a diagram is printable "
+     "text (tabs and newlines allowed)"),
+    ("control_character_form_feed", YamlError, 3,
+     "column 1: the control character \\x0c (form feed) is not allowed; a diagram is "
+     "printable text (tabs and newlines allowed)"),
     ("custom_tag", YamlError, 2,
      "tag '!Constant' is not allowed: diagrams may contain only plain YAML (mappings, lists, "
      'numbers, strings, booleans)'),
@@ -65,6 +74,8 @@ CASES = [
      "block 'g' parameter 'gain': expression '-K' uses 'K', which is empty (null)"),
     ("empty", YamlError, 1,
      "the file is empty; a diagram needs at least a 'blocks:' section"),
+    ("escape_in_block_type", UnknownBlockTypeError, 3,   # "\e" in YAML: shown, never sent
+     "unknown block type 'Gain\\x1b[32m ok\\x1b[0m'; run 'fwdstep blocks' for the list"),
     ("expression_overflow", ExpressionError, 5,
      "simulation.step: expression '1e400' is not finite"),
     ("forbidden_attribute", ExpressionError, 4,
@@ -126,6 +137,9 @@ CASES = [
      "connection names block 'intg', which does not exist; did you mean 'integ'?"),
     ("nonexistent_source_block", WiringError, 5,
      "connection names block 'source', which does not exist; did you mean 'src'?"),
+    ("noncharacter_fffe", YamlError, 3,
+     "column 20: the character \\ufffe (noncharacter U+FFFE) is not allowed; a diagram is "
+     "printable text (tabs and newlines allowed)"),
     ("not_hurwitz", ParameterError, 3,
      "block 'ref': reference-dynamics polynomial w^2 + 1 w - 2 is not Hurwitz: root 1 has "
      'non-negative real part'),

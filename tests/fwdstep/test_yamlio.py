@@ -214,3 +214,49 @@ def test_no_unsafe_yaml_calls_anywhere():
             if UNSAFE.search(code) and "SafeLoader" not in code:
                 offenders.append(f"{path.relative_to(REPO)}:{n}: {line.strip()}")
     assert not offenders, "unsafe YAML loading:\n" + "\n".join(offenders)
+
+
+# ------------------------------------------------------------------ hostile text
+@pytest.mark.parametrize("char, name, kind", [
+    ("\x07", "BEL", "control character"), ("\x1b", "ESC", "control character"),
+    ("\x0c", "form feed", "control character"), ("\x7f", "DEL", "control character"),
+    ("\x85\x9b", "U+009B", "control character"), ("\ufffe", "noncharacter U+FFFE", "character")])
+def test_control_characters_are_reported_at_line_and_column(char, name, kind):
+    text = f"a: 1\nb: [1, x{char}y]\n"
+    with pytest.raises(YamlError) as info:
+        parse_yaml_text(text, file="f.yaml")
+    shown = char[-1].encode("unicode_escape").decode() if char != "\ufffe" else "\\ufffe"
+    column = 9 if char != "\x85\x9b" else 10          # U+0085 (NEL) is allowed by YAML
+    assert str(info.value) == (f"f.yaml:2: column {column}: the {kind} {shown} ({name}) is not "
+                               "allowed; a diagram is printable text (tabs and newlines allowed)")
+
+
+def test_control_character_in_a_set_value_is_one_line(capsys, tmp_path):
+    import cli
+    path = tmp_path / "d.yaml"
+    path.write_text("parameters:\n  k: 1\nblocks:\n  c: {type: Constant, value: [1]}\n")
+    assert cli.main(["validate", str(path), "--set", "k=[1, 2\x1b[2J]"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "\x1b" not in err and "\\x1b" in err, err
+
+
+def test_a_megabyte_flow_list_is_refused_at_once_for_its_size_not_for_aliases(tmp_path):
+    path = tmp_path / "flow.yaml"
+    path.write_text("[" + ",".join(["1"] * 500_000) + "]\n")      # 1 000 002 bytes
+    t0 = time.process_time()
+    with pytest.raises(YamlError) as info:
+        read_yaml_file(str(path))
+    assert time.process_time() - t0 < 0.5
+    assert str(info.value) == (
+        f"{path}:1: the document has more than 50000 values (numbers, strings, lists, "
+        "mappings); a diagram is limited to that: write large arrays as expressions such as "
+        "ones(n) or eye(n)")
+
+
+def test_values_are_counted_exactly_below_the_separator_estimate():
+    # 30 000 lines "kN: 1" pass the quick estimate; the composer counts 60 001 values
+    text = "".join(f"k{i}: 1\n" for i in range(30_000))
+    assert sum(text.count(c) for c in ",\n[{") <= yamlio.MAX_NODES
+    with pytest.raises(YamlError) as info:
+        parse_yaml_text(text)
+    assert "the document has more than 50000 values" in str(info.value)
