@@ -82,12 +82,11 @@ def test_mistakes_are_caught_where_they_are(change, where, validator):
         [(list(e.absolute_path), e.message) for e in errors]
 
 
-def test_the_command_prints_the_schema_and_the_shipped_file_is_current(capsys, tmp_path):
+def test_the_command_prints_or_writes_the_schema(capsys, tmp_path):
+    """No copy is kept in the repository (it would go stale as blocks change): editors point at
+    the file 'fwdstep schema -o diagram.schema.json' writes."""
     assert cli.main(["schema"]) == 0
     assert capsys.readouterr().out == schema_text()
     out = tmp_path / "s.json"
     assert cli.main(["schema", "-o", str(out)]) == 0
     assert json.loads(out.read_text()) == diagram_schema()
-    shipped = REPO / "docs" / "diagram.schema.json"
-    assert shipped.read_text() == schema_text(), \
-        "docs/diagram.schema.json is stale: run fwdstep schema -o docs/diagram.schema.json"
