@@ -117,3 +117,19 @@ def test_compare_refusals(tmp_path, capsys):
     with pytest.raises(OutputError) as info:
         compare([a, a], signals=["k.z"])
     assert str(info.value).startswith("signal k.z is not in a (1); its signals are: ")
+
+
+def test_a_loaded_result_plots_like_the_fresh_one(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text(DECAY.format(t_final=1, step=0.01))
+    fresh = fwdstep.simulate(fwdstep.load_diagram(str(path)))
+    fresh.save(str(tmp_path / "run"))
+    back = fwdstep.load_result(str(tmp_path / "run"))
+    assert np.array_equal(back["x.y"], fresh["x.y"]) and np.array_equal(back.t, fresh.t)
+    assert back.metrics() == pytest.approx(fresh.metrics())
+    a, b = fresh.plot(figure="decay"), back.plot(figure="decay")
+    assert a.axes[0].get_ylabel() == b.axes[0].get_ylabel() == "$x$ [m]"
+    assert [t.get_text() for t in b.axes[0].get_legend().get_texts()] == ["first", "second"]
+    assert np.array_equal(b.axes[0].lines[1].get_ydata(), fresh["x.y"][:, 1])
+    page = back._repr_html_()
+    assert "<table>" in page and "ok" in page and f"{fresh.metrics()['final_abs_error']:.3e}" in page
