@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import sys
 
-from .spec import SIMULATION_KEYS, SOLVER_NAMES, TOP_LEVEL_KEYS
+from .spec import SIMULATION_KEYS, SOLVER_NAMES, SUBSYSTEM_KEYS, TOP_LEVEL_KEYS
 
 SCHEMA_ID = "https://fwdstep.invalid/diagram.schema.json"
 NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -71,14 +71,16 @@ def diagram_schema() -> dict:
     registry = load_library()
     types = sorted(registry)
     definitions = {f"block.{name}": block_schema(registry[name]) for name in types}
+    subsystem = {key: NUMBER for key in SUBSYSTEM_KEYS}      # sample_period, sample_offset
+    subsystem.update({"type": {"const": "subsystem"},
+                      "file": {"type": "string", "pattern": r"^[^~\\]"},
+                      "parameters": {"type": "object", "propertyNames": {"pattern": NAME},
+                                     "additionalProperties": ARRAY}})
     definitions["block.subsystem"] = {
         "type": "object",
         "description": "another diagram used as a block (search path: next to this file, "
                        "fwdstep's library as lib/NAME.yaml, FWDSTEP_PATH)",
-        "properties": {"type": {"const": "subsystem"},
-                       "file": {"type": "string", "pattern": r"^[^/~\\]"},
-                       "parameters": {"type": "object", "propertyNames": {"pattern": NAME},
-                                      "additionalProperties": ARRAY}},
+        "properties": subsystem,
         "required": ["type", "file"],
         "additionalProperties": False,
     }

@@ -37,6 +37,7 @@ from .yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
 TOP_LEVEL_KEYS = ("description", "parameters", "blocks", "connections", "ports", "simulation",
                   "log", "plots", "metrics")
 SIMULATION_KEYS = ("t_final", "step", "solver", "log_every", "bound", "backend", "rtol", "atol")
+SUBSYSTEM_KEYS = ("type", "file", "parameters", "sample_period", "sample_offset")
 SOLVER_NAMES = ("euler", "heun", "rk4", "dop853", "radau", "lsoda")   # fwdstep.solvers
 MAX_STEPS = 50_000_000
 MAX_SUBSYSTEM_DEPTH = 16
@@ -468,7 +469,7 @@ class _Level:
 
     def _expand_subsystem(self, name: str, body: LineDict, line, sets: dict):
         file = self.file
-        allowed = ("type", "file", "parameters", "sample_period", "sample_offset")
+        allowed = SUBSYSTEM_KEYS
         for key in body:
             if key not in allowed:
                 raise ParameterError(f"subsystem '{self.full(name)}' has no key '{key}'; keys are: "

@@ -90,3 +90,9 @@ def test_the_command_prints_or_writes_the_schema(capsys, tmp_path):
     out = tmp_path / "s.json"
     assert cli.main(["schema", "-o", str(out)]) == 0
     assert json.loads(out.read_text()) == diagram_schema()
+
+
+def test_subsystem_keys_come_from_the_loader():
+    from fwdstep.spec import SUBSYSTEM_KEYS
+    sub = diagram_schema()["definitions"]["block.subsystem"]
+    assert set(sub["properties"]) == set(SUBSYSTEM_KEYS)
