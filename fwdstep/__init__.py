@@ -14,12 +14,14 @@ from .errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, Diagram
 from .result import Result, load_result
 from .simulate import SimulationInterrupted, simulate
 from .compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
+from .sweep import SweepResult, run_sweep  # noqa: E402
+from .labelled import load_sweep  # noqa: E402
 
 __all__ = [
     "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
     "FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
     "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
     "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
-    "SimulationInterrupted", "load_result", "compare",
+    "SimulationInterrupted", "load_result", "compare", "run_sweep", "SweepResult", "load_sweep",
 ]
 __version__ = "0.1.0"
