@@ -144,7 +144,14 @@ def observer_form(den, nums):
     if den.size == 0:
         raise ValueError("denominator is zero")
     lead = den[0]
-    den = den / lead
+    with np.errstate(all="ignore"):
+        den = den / lead
+        scaled = [np.asarray(num, dtype=float) / lead for num in nums]
+    if not (np.isfinite(den).all() and all(np.isfinite(num).all() for num in scaled)):
+        from .errors import ParameterError
+        raise ParameterError(f"parameter 'den': the leading coefficient {lead:g} is too small "
+                             "(dividing the other coefficients by it overflows); drop it or "
+                             "rescale the transfer function")
     n = den.size - 1
     A = np.zeros((n, n))
     if n:
@@ -152,8 +159,7 @@ def observer_form(den, nums):
         A[:-1, 1:] = np.eye(n - 1)
     B = np.zeros((n, len(nums)))
     D = np.zeros(len(nums))
-    for j, num in enumerate(nums):
-        num = np.asarray(num, dtype=float) / lead
+    for j, num in enumerate(scaled):
         num = np.trim_zeros(num, "f") if np.any(num) else np.zeros(1)
         if num.size - 1 > n:
             raise ValueError("improper")

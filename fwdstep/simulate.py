@@ -102,12 +102,25 @@ def _locate_failure(d: CompiledDiagram, t: float, x: np.ndarray, exc) -> BlockRu
                             y = step.block.output(ts, xs, u)
                             for idx, val in zip(step.outputs, y):
                                 sig[idx] = val
+                                if (np.ndim(val) < 1 or np.shape(val)[0] not in (1, d.batch)
+                                        or np.shape(val)[1:] != tuple(d.signal_shapes[idx])):
+                                    return _shape_error(d, step, idx, val, ts)
                         else:
                             k[s][:, step.state] = step.block.derivative(ts, xs, u)
                     except Exception as inner:  # noqa: BLE001 - the user's block failed
                         return _block_error(step, inner, ts, u)
     return BlockRuntimeError(f"evaluation failed at t = {t:.6g}: {type(exc).__name__}: {exc}",
                              time=t)
+
+
+def _shape_error(d, step, idx, val, t) -> BlockRuntimeError:
+    """A block output whose shape is not the declared one (blamed on it, not downstream)."""
+    port = d.signal_names[idx].rsplit(".", 1)[-1]
+    got = tuple(np.shape(val))[1:] if np.ndim(val) else ()
+    return BlockRuntimeError(
+        f"block '{step.block.name}' ({step.block.type_name}) output '{port}' has shape "
+        f"{got} at t = {t:.6g}, but declares {tuple(d.signal_shapes[idx])}",
+        time=t, block=step.block.name)
 
 
 def _block_error(step, inner, t, u) -> BlockRuntimeError:

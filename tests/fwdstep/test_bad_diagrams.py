@@ -210,6 +210,9 @@ CASES = [
      'the top level must be a mapping (blocks:, connections:, ...), got a list'),
     ("top_level_scalar", YamlError, 1,
      'the top level must be a mapping (blocks:, connections:, ...), got a string'),
+    ("transfer_function_denormal_leading", ParameterError, 3,   # no RuntimeWarning lines
+     "parameter 'den': the leading coefficient 9.99989e-321 is too small (dividing the other "
+     "coefficients by it overflows); drop it or rescale the transfer function"),
     ("transfer_function_zero_denominator", ParameterError, 3,
      "block 'tf' parameter 'den' must not be zero"),
     ("unconnected_input", WiringError, 4,

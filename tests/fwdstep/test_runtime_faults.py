@@ -348,3 +348,36 @@ metrics: {error: after.y}
     from fwdstep.sweep import run_sweep
     res = run_sweep(write(tmp_path, text), grid={"g": [1.0, 1.0e200]})
     assert [(v.status, v.diverged_at) for v in res.variants] == [("ok", None), ("diverged", 0.01)]
+
+
+# ------------------------------------------------------------------ output shape at run time
+class ShapeshifterTestBlock(Block):
+    """Test block: declares y of shape (2,), returns shape (3,) from t = 0.5 on."""
+
+    params = {}
+
+    def setup(self):
+        self.declare_input("u", (2,))
+        self.declare_output("y", (2,))
+
+    def output(self, t, x, u):
+        return (u[0] if t < 0.5 else np.zeros((u[0].shape[0], 3)),)
+
+
+@pytest.mark.parametrize("downstream", ["Gain", "Integrator"])
+def test_an_output_changing_shape_is_blamed_on_its_block_not_downstream(tmp_path, downstream):
+    register(ShapeshifterTestBlock)
+    try:
+        text = FRAGILE.format(where="output").replace(
+            "{type: FragileTestBlock, threshold: 0.5, where: output}",
+            "{type: ShapeshifterTestBlock}").replace(
+            "int: {type: Integrator, shape: [2]}",
+            "int: {type: %s, shape: [2]%s}" % (downstream, ", gain: 2" * (downstream == "Gain")))
+        d = fwdstep.load_diagram(write(tmp_path, text))
+        with pytest.raises(BlockRuntimeError) as info:
+            fwdstep.simulate(d)
+    finally:
+        REGISTRY.pop("ShapeshifterTestBlock", None)
+    assert str(info.value) == ("block 'frag' (ShapeshifterTestBlock) output 'y' has shape (3,) "
+                               "at t = 0.5, but declares (2,)")
+    assert info.value.block == "frag" and info.value.result.t[-1] == pytest.approx(0.49)
