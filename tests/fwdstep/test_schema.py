@@ -96,3 +96,18 @@ def test_subsystem_keys_come_from_the_loader():
     from fwdstep.spec import SUBSYSTEM_KEYS
     sub = diagram_schema()["definitions"]["block.subsystem"]
     assert set(sub["properties"]) == set(SUBSYSTEM_KEYS)
+
+
+def test_the_reference_page_names_every_function_setting_section_and_metric():
+    """docs/diagram-format.md is written by hand: it must not miss what the code offers."""
+    import re
+    from fwdstep.expressions import CONSTANTS, FUNCTIONS
+    from fwdstep.result import METRIC_DEFINITIONS
+    from fwdstep.spec import SOLVER_NAMES, SUBSYSTEM_KEYS
+    text = (REPO / "docs" / "diagram-format.md").read_text()
+    quoted = set(re.findall(r"`([A-Za-z_][A-Za-z0-9_]*)", text))
+    named = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))
+    missing = [n for n in list(FUNCTIONS) + list(CONSTANTS) if n not in named]
+    missing += [n for n in list(TOP_LEVEL_KEYS) + list(SIMULATION_KEYS) + list(SOLVER_NAMES)
+                + list(SUBSYSTEM_KEYS) + list(METRIC_DEFINITIONS) if n not in quoted]
+    assert missing == []
