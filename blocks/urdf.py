@@ -156,9 +156,12 @@ def regressor(pin, model, data, model0, data0, q, qdot, zeta, zetad) -> np.ndarr
 
     where R_g(q, v, a) is pinocchio's joint-torque regressor (R_g theta = H a + C(q, v) v + g)
     and R_0 the same without gravity (docs/urdf-regressor.md, eq. (R))."""
-    plus = pin.computeJointTorqueRegressor(model, data, q, 0.5 * (qdot + zeta), zetad)
-    minus = pin.computeJointTorqueRegressor(model0, data0, q, 0.5 * (qdot - zeta),
-                                            np.zeros_like(q))
+    half_sum = qdot + zeta
+    half_sum *= 0.5
+    half_difference = qdot - zeta
+    half_difference *= 0.5
+    plus = pin.computeJointTorqueRegressor(model, data, q, half_sum, zetad)
+    minus = pin.computeJointTorqueRegressor(model0, data0, q, half_difference, 0.0 * zetad)
     return plus - minus
 
 
@@ -381,10 +384,10 @@ class URDFRegressor(Block):
         q, qdot, zeta, zetad = u
         cols = self._columns
         args = (self._pin, self.model, self._data, self.model0, self._data0)
-        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
-        if B == 1:
+        if len(q) == len(qdot) == len(zeta) == len(zetad) == 1:
             Y = regressor(*args, q[0], qdot[0], zeta[0], zetad[0])
             return ((Y if cols is None else Y[:, cols])[None],)
+        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
         q, qdot, zeta, zetad = (np.broadcast_to(v, (B, self._n)) for v in u)
         p = self.outputs["Y"].shape[1]
         out = np.empty((B, self._n, p))

@@ -1,0 +1,121 @@
+"""Panda Theorem 1 (diagrams/robots/panda_theorem1.yaml: ell = 2, 10 s, step 1e-3, rk4) through
+fwdstep against a hand-written RK4 loop that calls pinocchio directly for the same closed loop.
+
+    python benchmarks/robots_benchmark.py               # 3 interleaved repeats of each
+    python benchmarks/robots_benchmark.py --repeats 5 --t-final 2
+
+The hand loop integrates, with the diagram's numbers,
+
+    zdot = -alpha_2 qdot - alpha_1 (q - q_d) - alpha_0 I,   I' = q - q_d        (eq. (2), ell = 2)
+    s = qdot - z,  Y = R_g(q, (qdot + z)/2, zdot) - R_0(q, (qdot - z)/2, 0)[:, base columns]
+    tau = Y theta_hat - K s,  qddot = aba(q, qdot, tau),  theta_hat' = -Gamma Y^T s
+
+in one flat state vector, and its final tracking error is compared with the diagram's to show
+that both integrate the same closed loop.  Both sides record every 10th step.  Repeats are
+interleaved (A, B, A, B, ...) so that a busy machine slows both alike; the ratio is of medians
+of wall times measured in this one run.  Target (issue 12): fwdstep <= 2x the hand loop.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+DIAGRAM = os.path.join(ROOT, "diagrams", "robots", "panda_theorem1.yaml")
+
+
+def hand_loop(d, t_final: float, step: float, log_every: int):
+    """The closed loop of panda_theorem1.yaml, integrated by hand with pinocchio calls."""
+    import pinocchio as pin
+
+    blocks = {s.block.name: s.block for s in d.schedule}
+    Yb, adapt, ref, qd = blocks["Y"], blocks["adapt"], blocks["ref"], blocks["qd"]
+    model, data, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
+    cols = Yb._columns
+    n, p = model.nv, Yb.outputs["Y"].shape[1]
+    params = d.spec.parameters
+    alpha, T = float(params["alpha"]), float(params["T"])
+    a, b = np.asarray(params["a"], float), np.asarray(params["b"], float)
+    K = np.asarray(params["K"], float)
+    gamma = float(params["Gamma"])
+    a0, a1, a2 = alpha ** 3, 3 * alpha ** 2, 3 * alpha              # (w + alpha)^3
+    x = np.concatenate([np.asarray(params["q0"], float), np.zeros(n), np.zeros(n),
+                        np.zeros(n), np.full(p, float(params["theta0"]))])
+    iq, iv, iz, ii, ith = (slice(0, n), slice(n, 2 * n), slice(2 * n, 3 * n),
+                           slice(3 * n, 4 * n), slice(4 * n, 4 * n + p))
+    regressor, aba = pin.computeJointTorqueRegressor, pin.aba
+    zeros = np.zeros(n)
+    del ref, qd, adapt
+
+    def f(t, x):
+        q, v, z, integral, theta = x[iq], x[iv], x[iz], x[ii], x[ith]
+        e = q - (b + a * (t / T))                                   # q - q_d (ell = 2: a ramp)
+        zdot = -a2 * v - a1 * e - a0 * integral
+        s = v - z
+        Y = (regressor(model, data, q, 0.5 * (v + z), zdot)
+             - regressor(model0, data0, q, 0.5 * (v - z), zeros))[:, cols]
+        tau = Y @ theta - K @ s
+        dx = np.empty_like(x)
+        dx[iq] = v
+        dx[iv] = aba(model, data, q, v, tau)
+        dx[iz] = zdot
+        dx[ii] = e
+        dx[ith] = -gamma * (Y.T @ s)
+        return dx
+
+    steps = int(round(t_final / step))
+    log = np.empty((steps // log_every + 1, x.size))
+    log[0] = x
+    t, h = 0.0, step
+    for k in range(1, steps + 1):
+        k1 = f(t, x)
+        k2 = f(t + 0.5 * h, x + 0.5 * h * k1)
+        k3 = f(t + 0.5 * h, x + 0.5 * h * k2)
+        k4 = f(t + h, x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        t = k * h
+        if k % log_every == 0:
+            log[k // log_every] = x
+    e_final = x[iq] - (b + a * (t / T))
+    return log, e_final
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats of each")
+    parser.add_argument("--t-final", type=float, default=10.0, help="simulated time (s)")
+    args = parser.parse_args(argv)
+
+    import fwdstep
+    d = fwdstep.load_diagram(DIAGRAM, overrides={"t_final": args.t_final})
+    step, log_every = d.spec.simulation.step, d.spec.simulation.log_every
+    print(f"Panda Theorem 1 (ell = 2), {args.t_final:g} s at step {step:g}, rk4, "
+          f"{d.n_states} states; {args.repeats} interleaved repeats")
+    wall_f, wall_h = [], []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        result = fwdstep.simulate(d)
+        wall_f.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        _, e_hand = hand_loop(d, args.t_final, step, log_every)
+        wall_h.append(time.perf_counter() - t0)
+    e_diagram = result["e.y"][-1]
+    agreement = float(np.abs(e_diagram - e_hand).max())
+    med_f, med_h = statistics.median(wall_f), statistics.median(wall_h)
+    print(f"fwdstep simulate : median {med_f:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_f)})")
+    print(f"hand pinocchio   : median {med_h:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_h)})")
+    print(f"ratio fwdstep / hand = {med_f / med_h:.2f}  (target <= 2)")
+    print(f"final |Delta q| (largest joint): diagram {np.abs(e_diagram).max():.3e}, hand "
+          f"{np.abs(e_hand).max():.3e}; they differ by {agreement:.1e} (same closed loop)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
