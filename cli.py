@@ -103,17 +103,18 @@ def _add_results_commands(sub, run) -> None:
     run.add_argument("--report", action="store_true",
                      help="also write report.html (self-contained) into the output directory")
     gr = sub.add_parser("graph", help="draw a diagram as a block diagram (SVG, PNG or PDF)")
-    gr.add_argument("diagram")
+    gr.add_argument("diagram", help=_DIAGRAM_HELP)
     gr.add_argument("-o", "--output", default=None,
                     help="picture file, .svg/.png/.pdf (default: out/<diagram name>/diagram.svg)")
     gr.add_argument("--depth", type=int, default=None,
                     help="draw subsystems nested deeper than this as one box (default: all)")
     gr.add_argument("--engine", choices=("auto", "dot", "matplotlib"), default="auto",
                     help="layout: graphviz dot (default when installed) or matplotlib")
-    gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
     rep = sub.add_parser("report", help="one self-contained HTML page of a run or sweep "
                                         "directory: diagram, parameters, metrics, figures")
-    rep.add_argument("run_dir", metavar="RUN_DIR")
+    rep.add_argument("run_dir", metavar="RUN_DIR",
+                     help="a directory written by fwdstep run or fwdstep sweep")
     rep.add_argument("-o", "--output", default=None,
                      help="the HTML file (default: RUN_DIR/report.html)")
     cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "

@@ -177,3 +177,16 @@ def test_adaptation_gain_messages_say_what_is_wrong_with_the_value(tmp_path, gam
     assert str(info.value) == (f"{path}:4: block 'adapt' parameter 'gamma' {what} (it must be "
                                "a positive number, 2 positive numbers, or a symmetric positive "
                                "definite 2x2 matrix)")
+
+
+def test_every_option_has_help_and_version_prints(capsys):
+    import argparse
+    import cli
+    parser = cli.build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    missing = [f"{name} {a.option_strings or a.dest}" for name, sp in sub.choices.items()
+               if name != "sweep"            # the sweep's options: H13 (issue 13)
+               for a in sp._actions if not a.help]
+    assert missing == []
+    assert cli.main(["--version"]) == 0
+    assert capsys.readouterr().out.startswith("fwdstep ")
