@@ -114,7 +114,6 @@ class OutputDir:
         out._lock()
         try:
             out._check_existing()
-            os.makedirs(out.target, exist_ok=True)
             yield out
         finally:
             out._unlock()

@@ -679,7 +679,20 @@ def _terminate_as_interrupt():
 
 
 def cmd_sweep(args) -> int:
-    """``fwdstep sweep``: see the module docstring for the options and exit codes."""
+    """``fwdstep sweep``: see the module docstring for the options and exit codes.  One
+    sweep per output directory: it is locked for the whole run (``fwdstep.outputs``)."""
+    from .outputs import OutputDir
+    outdir = args.outdir or os.path.join(
+        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
+    try:
+        with OutputDir.lock_only(outdir, force=True):
+            return _cmd_sweep(args)
+    except OutputError as exc:
+        print(f"fwdstep: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_sweep(args) -> int:
     from .commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK,
                            _overrides)
     outdir = args.outdir or os.path.join(

@@ -343,3 +343,19 @@ def test_structured_linear_products_equal_the_dense_product(kind):
         got = op(v)
         assert got.shape == expected.shape and got is not v
         np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
+
+
+def test_a_sweep_into_a_directory_held_by_a_run_is_refused(tmp_path, capsys):
+    text = DIAGRAM.replace("blocks:", "parameters:\n  k: 1\nblocks:").replace(
+        "value: [1, 2]", "value: [k, 2]")
+    outdir = tmp_path / "out"
+    with OutputDir(str(outdir), expected=["sweep.csv"]):
+        code = cli.main(["sweep", write(tmp_path, text), "--grid", "k=1,2", "-o", str(outdir),
+                         "-q"])
+    assert code == 2
+    assert "is being written by another fwdstep run (pid" in capsys.readouterr().err
+    assert not outdir.exists()
+    assert cli.main(["sweep", write(tmp_path, text), "--grid", "k=1,2", "-o", str(outdir),
+                     "-q", "--workers", "1"]) == 0
+    assert (outdir / "sweep.csv").exists()
+    assert [n for n in os.listdir(tmp_path) if "fwdstep" in n] == []     # lock released
