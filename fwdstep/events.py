@@ -51,6 +51,9 @@ class Event:
     lo: float                        # the earliest of the merged times (left limits before it)
     hi: float                        # the latest (right limits from it on)
     updates: list = field(default_factory=list)   # compiled steps of discrete blocks
+    #: ``updates`` in levels: a block's inputs depend (through feedthrough) only on blocks of
+    #: lower levels; None when they form a loop (then: fixed-point iteration)
+    levels: list | None = None
 
 
 @dataclass
@@ -59,7 +62,7 @@ class SubStep:
     b: float                 # end time
     lo: float                # stage times >= lo (right limit of an event at a), else -inf
     hi: float                # stage times <= hi (left limit of an event at b), else +inf
-    updates: list            # discrete blocks updated at a, before the first stage
+    event: Event | None      # its discrete blocks are updated at a, before the first stage
 
 
 @dataclass
@@ -76,6 +79,11 @@ class EventPlan:
     @property
     def discrete(self) -> bool:
         return any(e.updates for e in self.events)
+
+    @property
+    def sampled_signals(self) -> list:
+        """Signal indices read by the discrete blocks (what an update needs)."""
+        return sorted({i for e in self.events for st in e.updates for i in st.inputs})
 
 
 def collect(d, t_final: float) -> list:
@@ -112,6 +120,7 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
             events.append(Event(lo=t, hi=t))
         if st is not None and all(u is not st for u in events[-1].updates):
             events[-1].updates.append(st)
+    _order_updates(d, events)
     # events at grid points (index m) and inside steps (index n: t_n < T < t_{n+1})
     at_grid: dict = {}
     inside: dict = {}
@@ -132,11 +141,11 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
         a = n * h
         start = at_grid.get(n)
         lo = start.hi if start else -math.inf
-        upd = start.updates if start else []
+        upd = start if start and start.updates else None
         subs = []
         for ev in inside.get(n, []):
             subs.append(SubStep(a, ev.lo, lo, math.nextafter(ev.lo, -math.inf), upd))
-            a, lo, upd = ev.lo, ev.hi, ev.updates
+            a, lo, upd = ev.lo, ev.hi, ev if ev.updates else None
         end = at_grid.get(n + 1)
         hi = math.nextafter(end.lo, -math.inf) if end else math.inf
         subs.append(SubStep(a, (n + 1) * h, lo, hi, upd))
@@ -144,18 +153,69 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
     return EventPlan(steps=steps, final=at_grid.get(n_steps), events=events, instants=instants)
 
 
-def apply_updates(d, steps: list, t: float, x: np.ndarray, outputs, sig) -> None:
-    """Update the discrete blocks ``steps`` at event time t, in place in ``x`` (B, N).
+def _order_updates(d, events: list) -> None:
+    """Sort each event's discrete blocks into levels: block D comes after block E when E's
+    output reaches D's inputs through blocks with feedthrough (found once, from the
+    schedule, which is topological for feedthrough)."""
+    reach: dict = {}                 # signal index -> names of discrete blocks it depends on
+    for st in d.schedule:
+        blk = st.block
+        names = list(blk.inputs)
+        for port, idx in zip(blk.outputs, st.outputs):
+            if blk.discrete:
+                reach[idx] = frozenset((blk.name,))
+            else:
+                deps = [reach.get(st.inputs[names.index(i)], frozenset())
+                        for i in blk.feedthrough(port)]
+                reach[idx] = frozenset().union(*deps)
+    cache: dict = {}
+    for ev in events:
+        if not ev.updates:
+            continue
+        key = tuple(st.block.name for st in ev.updates)
+        if key not in cache:
+            cache[key] = _levels(ev.updates, reach)
+        ev.levels = cache[key]
+
+
+def _levels(updates: list, reach: dict) -> list | None:
+    here = {st.block.name for st in updates}
+    after = {st.block.name: set().union(*[reach.get(i, frozenset()) for i in st.inputs]) & here
+             for st in updates}
+    levels, placed = [], set()
+    while len(placed) < len(updates):
+        level = [st for st in updates if st.block.name not in placed
+                 and after[st.block.name] <= placed]
+        if not level:
+            return None                  # a loop: fixed-point iteration decides
+        levels.append(level)
+        placed.update(st.block.name for st in level)
+    return levels
+
+
+def apply_updates(event: Event, t: float, x: np.ndarray, evaluate) -> None:
+    """Update the discrete blocks of ``event`` at time t, in place in ``x`` (B, N).
+    ``evaluate(t)`` evaluates every output at (t, x) and returns the signals (indexable by
+    signal index).
 
     The new discrete states are the fixed point of ``x+ = update(x-, u(t, x+))``: each
     block's update reads its inputs at t evaluated with the *updated* states of the others
     (a ZeroOrderHold feeding a DiscreteStateSpace passes the sample of this instant, not the
-    previous one), found by repeated output passes (one per level of such chains, plus one
-    to confirm).  A cycle of blocks that pass their input through at the sample instant has
-    no such order and is refused."""
+    previous one).  Without a loop among the blocks this is one output pass per level
+    (``Event.levels``); with one, passes are repeated until nothing changes, and a loop of
+    blocks that pass their input through at the sample instant never settles: refused."""
+    steps = event.updates
+    if event.levels is not None:
+        for level in event.levels:
+            sig = evaluate(t)
+            new = [st.block.update(t, x[:, st.state], tuple(sig[i] for i in st.inputs))
+                   for st in level]
+            for st, v in zip(level, new):
+                x[:, st.state] = v
+        return
     old = [x[:, st.state].copy() for st in steps]
     for _ in range(len(steps) + 2):
-        outputs(t, x)
+        sig = evaluate(t)
         new = [np.broadcast_to(st.block.update(t, xo, tuple(sig[i] for i in st.inputs)),
                                xo.shape) for st, xo in zip(steps, old)]
         same = all(np.array_equal(x[:, st.state], v, equal_nan=True)

@@ -69,7 +69,7 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     for (a, ev_a), (b, ev_b) in zip(bounds[:-1], bounds[1:]):
         segments.append((a, b, ev_a.hi if ev_a else -math.inf,
                          math.nextafter(ev_b.lo, -math.inf) if ev_b else math.inf,
-                         ev_a.updates if ev_a else []))
+                         ev_a if ev_a and ev_a.updates else None))
 
     dx = np.empty((B, N))
     status, message, error = "ok", "", None
@@ -77,6 +77,10 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     died_at = np.full(B, np.nan)
     row, steps, t = 0, 0, 0.0
     x = np.empty((B, N))
+
+    def evaluate(tt):
+        outputs(tt, x)
+        return sig
 
     def record(t_rec, ts, state):
         nonlocal row
@@ -92,8 +96,8 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
             g = 0                                  # next grid row to record
             for a, b, lo, hi, updates in segments:
                 t = a
-                if updates:
-                    apply_updates(d, updates, max(a, lo), x, outputs, sig)
+                if updates is not None:
+                    apply_updates(updates, max(a, lo), x, evaluate)
 
                 def rhs(tt, y, lo=lo, hi=hi):
                     f_eval(min(max(tt, lo), hi), y.reshape(B, N), dx)
@@ -137,7 +141,7 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
                     progress(b / t_final)
             else:
                 if end is not None and end.updates:
-                    apply_updates(d, end.updates, max(t_final, end.hi), x, outputs, sig)
+                    apply_updates(end, max(t_final, end.hi), x, evaluate)
                 record(t_final, max(t_final, end.hi) if end else t_final, x)
         except KeyboardInterrupt:
             status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"

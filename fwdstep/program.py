@@ -55,6 +55,7 @@ class Program:
     first_record_ts: object = None
     final_ts: object = None
     rest_h: object = None
+    sample_signals: object = None
 
 
 class _Source:
@@ -75,10 +76,11 @@ class _Source:
         self.lines.append("    " * indent + text)
 
 
-def build_program(d, n_rows: int, fuse: bool = True, alloc=None) -> Program:
+def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple = ()) -> Program:
     """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows.
     ``alloc(shape)`` makes each log array (default: in memory, NaN-filled;
-    ``fwdstep.budgets.disk_allocator`` streams the log to disk)."""
+    ``fwdstep.budgets.disk_allocator`` streams the log to disk).  ``sampled``: the signal
+    indices ``sample_signals(ts)`` returns (inputs of discrete blocks, fwdstep.events)."""
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -253,6 +255,10 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None) -> Program:
             rest_h.append(f"multiply(K{j}, h * {src.const('b', b)}, out=T)")
             rest_h.append("add(xn, T, out=xn)")
     function("def rest_h(t, h, lo, hi):", rest_h)
+    # every output at (ts, xn), returning the signals discrete blocks read: {index: value}
+    if sampled:
+        function("def sample_signals(ts):", stage1_ts + [
+            "return {" + ", ".join(f"{i}: {read(i)}" for i in sampled) + "}"])
 
     source = "\n".join(src.lines)
     exec(compile(source, f"<fwdstep program for {d.file}>", "exec"), ns)  # noqa: S102
@@ -260,7 +266,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None) -> Program:
                    first_record=ns["first_record"], rest=ns["rest"], final=ns["final"],
                    plan=plan, source=source, first_ts=ns["first_ts"],
                    first_record_ts=ns["first_record_ts"], final_ts=ns["final_ts"],
-                   rest_h=ns["rest_h"])
+                   rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"))
 
 
 class _GroupBuffers:

@@ -188,8 +188,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     n_steps = cfg.n_steps
     events = plan_events(d, h, n_steps)
     special = events.steps if events is not None else {}
-    if events is not None and events.discrete:
-        _, ev_outputs, ev_sig = _make_evaluator(d)
+    sampled = tuple(events.sampled_signals) if events is not None else ()
     every = cfg.log_every
     B, N = d.batch, d.n_states
     bound = cfg.bound
@@ -200,7 +199,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     if log_dir is not None:
         from .budgets import disk_allocator
         alloc = disk_allocator(log_dir)
-    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc)
+    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled)
     x = prog.xn
     x[...] = d.x0
     first, first_record, rest = prog.first, prog.first_record, prog.rest
@@ -222,8 +221,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                 if n in special:              # a step that touches a discontinuity
                     for i, sub in enumerate(special[n]):
                         ts = max(sub.a, sub.lo)
-                        if sub.updates:
-                            apply_updates(d, sub.updates, ts, x, ev_outputs, ev_sig)
+                        if sub.event is not None:
+                            apply_updates(sub.event, ts, x, prog.sample_signals)
                         if i == 0 and n % every == 0:
                             prog.first_record_ts(t, ts, row)
                             row += 1
@@ -269,7 +268,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                     prog.final(t, row)
                 else:                         # an event at t_final: its right limit
                     if end.updates:
-                        apply_updates(d, end.updates, max(t, end.hi), x, ev_outputs, ev_sig)
+                        apply_updates(end, max(t, end.hi), x, prog.sample_signals)
                     prog.final_ts(t, max(t, end.hi), row)
                 row += 1
         except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)

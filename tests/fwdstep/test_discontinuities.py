@@ -7,7 +7,6 @@ a polynomial of degree 0), whether T is on the step grid or not, and a piecewise
 problem keeps the method's full order.  Before this, the integral of a unit Step at 0.3
 over [0, 1] with RK4, h = 0.1, was 0.7167 (issue 11).
 """
-import glob
 import math
 
 import numpy as np
@@ -134,15 +133,6 @@ def test_events_are_merged_and_snapped_to_the_grid(tmp_path):
                                                    (0.35, 0.4)]
     # 1 - 1e-13 is within SNAP h of t_final: it happens at t_final
     assert abs(1.0 - 0.9999999999999) < SNAP * 0.1 and plan.final is not None
-
-
-def test_shipped_diagrams_declare_no_times_so_their_runs_are_unchanged():
-    """None of the shipped diagrams uses a block with discontinuities: their runs take the
-    plain fixed-step path, bit for bit the numbers they gave before events existed (checked
-    against arrays saved from the commit before: docs/discrete-time.md, 'Compatibility')."""
-    for path in sorted(glob.glob("diagrams/*.yaml")):
-        d = fwdstep.load_diagram(path)
-        assert plan_events(d, d.spec.simulation.step, d.spec.simulation.n_steps) is None, path
 
 
 def test_compiled_backend_refuses_events_in_one_line(tmp_path):

@@ -248,3 +248,19 @@ def test_program_source_is_straight_line(loop):
     prog = build_program(d, n_rows=2)
     body = prog.source
     assert "for " not in body and "while " not in body and "sig[" not in body
+
+
+@pytest.mark.parametrize("name", ["theorem1", "theorem3", "theorem6", "theorem8", "pid_classic",
+                                  "slotine_li_disturbed"])
+def test_shipped_diagrams_without_events_run_the_plain_procedure(name):
+    """Diagrams that declare no discontinuity times (fwdstep.events) take the unchanged
+    path: bit for bit the reference stepper.  (Their fused runs were also compared with
+    arrays saved before events existed: equal, docs/discrete-time.md.)"""
+    from fwdstep.events import plan_events
+    d = fwdstep.load_diagram(f"diagrams/{name}.yaml", overrides={"simulation.t_final": 0.04})
+    assert plan_events(d, d.spec.simulation.step, d.spec.simulation.n_steps) is None
+    t_ref, ref = reference_run(d)
+    r = fwdstep.simulate(d, fuse=False)
+    np.testing.assert_array_equal(r.t, t_ref)
+    for sig in d.logged:
+        np.testing.assert_array_equal(r[sig], ref[sig][:, 0], err_msg=sig)
