@@ -126,10 +126,15 @@ class TwoLinkArm(MechanicalPlant):
             Example 9.2: 1, 1, 2, 30 deg, 0.12, 0.5, 0.25, 0.6); delta_e in degrees.
         gravity: gravitational acceleration g (default 0: horizontal plane).
         q0, qdot0: initial joint position and velocity (2 numbers each, or one number for both).
+        payload, payload_time: from t = payload_time on, link 2 carries ``payload`` more kg at
+            its centre of mass (me -> me + payload in a1..a7: a load picked up; default 0,
+            none); the step time is declared as a discontinuity.
     """
 
     params = {
         **_two_link_params(),
+        "payload": Param("float", 0.0, "mass added to link 2 at its centre of mass (kg)"),
+        "payload_time": Param("float", 0.0, "time the payload is added (s)"),
         "q0": Param("array", 0.0, "initial joint position [q1, q2] (rad)"),
         "qdot0": Param("array", 0.0, "initial joint velocity [qdot1, qdot2] (rad/s)"),
     }
@@ -152,7 +157,8 @@ class TwoLinkArm(MechanicalPlant):
         theta = two_link_theta(**values)
         return theta if values["gravity"] != 0.0 else theta[:4]
 
-    def setup(self, m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity, q0, qdot0):
+    def setup(self, m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity, q0, qdot0, payload,
+              payload_time):
         for key, value in (("m1", m1), ("me", me), ("l1", l1), ("lce", lce)):
             if value <= 0.0:
                 raise ParameterError(f"block {self.name!r} parameter {key!r} must be positive, "
@@ -161,6 +167,9 @@ class TwoLinkArm(MechanicalPlant):
             if value < 0.0:
                 raise ParameterError(f"block {self.name!r} parameter {key!r} must not be "
                                      f"negative, got {value}", block=self.name)
+        if me + payload <= 0.0:
+            raise ParameterError(f"block {self.name!r} parameter 'payload' would leave link 2 "
+                                 f"with mass {me + payload} <= 0", block=self.name)
         theta = two_link_theta(m1, l1, me, delta_e, I1, lc1, Ie, lce, gravity)
         a1, a2 = theta[0], theta[1]
         r2 = theta[2] ** 2 + theta[3] ** 2
@@ -171,21 +180,38 @@ class TwoLinkArm(MechanicalPlant):
                                  block=self.name)
         self.declare_plant(2, q0, qdot0)
         self.set_param("theta", theta)
+        self.set_param("theta_after", two_link_theta(m1, l1, me + payload, delta_e, I1, lc1, Ie,
+                                                     lce, gravity))
+        self.set_param("payload_time", [payload_time])
         self.finalize(1)
 
+    def discontinuities(self, t_final: float) -> np.ndarray:
+        """The payload time(s) of the variants that have a payload."""
+        changed = np.any(self.p.theta_after != self.p.theta, axis=1)
+        return np.unique(self.p.payload_time[changed, 0]) if np.any(changed) else np.zeros(0)
+
     def finalize(self, batch: int) -> None:
+        self._payload = bool(np.any(self.p.theta_after != self.p.theta))
         theta = self.p.theta                      # (B, 7)
+        # gravity terms when any variant, before or after a payload, has them
+        both = np.concatenate([theta, self.p.theta_after])
         self._a = [theta[:, k] for k in range(7)]  # each (B,)
-        self._gravity = bool(np.any(theta[:, 4:] != 0.0))
+        self._gravity = bool(np.any(both[:, 4:] != 0.0))
         # one variant: plain floats, for the scalar fast path of a single run
         self._a_float = tuple(theta[0].tolist()) if theta.shape[0] == 1 else None
 
     def derivative(self, t, x, u):
         tau, tau_star = u
+        if self._payload:               # theta_after from payload_time on, per variant
+            theta = np.where(t >= self.p.payload_time, self.p.theta_after, self.p.theta)
+            return self._derivative_batch([theta[:, k] for k in range(7)], x, tau, tau_star)
         if self._a_float is not None and x.shape[0] == 1 and tau.shape[0] == 1 \
                 and tau_star.shape[0] == 1:
             return self._derivative_single(x, tau, tau_star)
-        a1, a2, a3, a4, a5, a6, a7 = self._a
+        return self._derivative_batch(self._a, x, tau, tau_star)
+
+    def _derivative_batch(self, a, x, tau, tau_star):
+        a1, a2, a3, a4, a5, a6, a7 = a
         q1 = x[:, 0]
         q2 = x[:, 1]
         qd1 = x[:, 2]

@@ -72,3 +72,34 @@ def test_pd_gravity_nlink_regulates_a_set_point():
     late, early = err[r.t >= 4.0].max(), err[(r.t >= 1.0) & (r.t <= 2.0)].max()
     assert late < 2e-3 and late < 0.1 * early                # a decaying oscillation
     assert np.max(np.abs(r["g.y"][-1])) > 1.0            # gravity is really compensated
+
+
+def test_payload_step_switches_the_arm_to_the_heavier_link_2_exactly(tmp_path):
+    """TwoLinkArm payload: me -> me + payload at payload_time (a declared discontinuity, so
+    RK4 keeps its order); reference: solve_ivp on the plain arm with me = 2, then me = 3."""
+    from scipy.integrate import solve_ivp
+
+    from blocks.robot import TwoLinkArm
+    path = tmp_path / "payload.yaml"
+    path.write_text("""
+description: open-loop two-link arm picking up 1 kg at t = 0.35 (off the step grid)
+blocks:
+  tau: {type: Constant, value: [1.5, -0.5]}
+  arm: {type: TwoLinkArm, q0: [0.3, -0.2], gravity: 9.81, payload: 1.0, payload_time: 0.35}
+connections:
+  - tau.y -> arm.tau
+simulation: {t_final: 1.0, step: 0.002, solver: rk4}
+log: [arm.q, arm.qdot]
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(str(path)))
+    zero = np.zeros((1, 2))
+
+    def f(arm):
+        return lambda t, x: arm.derivative(t, x[None], (np.array([[1.5, -0.5]]), zero))[0]
+
+    before = solve_ivp(f(TwoLinkArm("a", gravity=9.81)), (0, 0.35), [0.3, -0.2, 0, 0],
+                       rtol=1e-12, atol=1e-12)
+    after = solve_ivp(f(TwoLinkArm("a", gravity=9.81, me=3.0)), (0.35, 1.0), before.y[:, -1],
+                      rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.r_[r["arm.q"][-1], r["arm.qdot"][-1]], after.y[:, -1],
+                               atol=1e-8)
