@@ -359,3 +359,66 @@ def test_a_sweep_into_a_directory_held_by_a_run_is_refused(tmp_path, capsys):
                      "-q", "--workers", "1"]) == 0
     assert (outdir / "sweep.csv").exists()
     assert [n for n in os.listdir(tmp_path) if "fwdstep" in n] == []     # lock released
+
+
+# ------------------------------------------------------------------ stress under a memory cap
+STRESS_DRIVER = r"""
+import contextlib, io, json, resource, sys
+resource.setrlimit(resource.RLIMIT_AS, (CAP, CAP))
+import cli
+out = {}
+for name, argv in json.loads(sys.argv[1]).items():
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = cli.main(argv)
+        except BaseException as exc:          # what the user would see as a traceback
+            code = f"raised {type(exc).__name__}"
+    out[name] = [code, err.getvalue()]
+print(json.dumps(out))
+"""
+
+
+def test_hostile_inputs_under_a_memory_cap(tmp_path):
+    """Each hostile input is refused (exit 2, one line) or survived (exit 0) inside a 2.5 GiB
+    address-space cap: nothing is allocated before its budget is checked."""
+    bad = REPO / "tests" / "diagrams" / "bad"
+    params = "parameters:\n" + "".join(f"  p{i}: ones(1000, 1000)\n" for i in range(3000))
+    files = {
+        "huge_log": HUGE_LOG,
+        "flow_list": "[" + ",".join(["1"] * 500_000) + "]\n",
+        "parameter_memory": params + "blocks:\n  c: {type: Constant, value: [1]}\n",
+        "fusion_40000_states": integrators(2000, 20),
+        "escape_in_file": "blocks:\n  c: {type: Constant\x1b[2J, value: [1]}\n",
+    }
+    cases = {name: ["run", write(tmp_path, text, f"{name}.yaml"), "-o",
+                    str(tmp_path / name), "-q", "--no-plots"] for name, text in files.items()}
+    for stem in ("billion_laughs", "huge_eye", "huge_integrator", "huge_power"):
+        cases[stem] = ["validate", str(bad / f"{stem}.yaml")]
+    cap = int(2.5 * 1024 ** 3)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MPLBACKEND="Agg")
+    proc = subprocess.run([sys.executable, "-c", STRESS_DRIVER.replace("CAP", str(cap)),
+                           json.dumps(cases)], capture_output=True, text=True, timeout=300,
+                          cwd=REPO, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    results = json.loads(proc.stdout.splitlines()[-1])
+    survived = {"fusion_40000_states"}
+    for name, (code, err) in results.items():
+        assert code == (0 if name in survived else 2), (name, code, err)
+        assert err.count("\n") <= 1 and "Traceback" not in err and "MemoryError" not in err, \
+            (name, err)
+        assert "\x1b" not in err, (name, err)
+    with np.load(tmp_path / "fusion_40000_states" / "result.npz") as data:
+        np.testing.assert_allclose(data["int19.y"][-1], np.full(2000, 0.01), rtol=1e-12)
+
+
+# ------------------------------------------------------------------ printable messages
+@pytest.mark.parametrize("verb", ["validate", "run"])
+def test_escape_sequences_in_a_file_name_are_shown_escaped(tmp_path, capsys, verb):
+    name = "d\x1b[2K\x1b[1Gok\x07.yaml"
+    path = write(tmp_path, DIAGRAM.replace("Integrator", "Integrater"), name)
+    extra = ["-o", str(tmp_path / "o")] if verb == "run" else []
+    assert cli.main([verb, path, *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "\x1b" not in err and "\x07" not in err
+    assert err.startswith(f"fwdstep: {tmp_path}/d\\x1b[2K\\x1b[1Gok\\x07.yaml:3: ")
