@@ -1,9 +1,10 @@
 """A whitelisted arithmetic evaluator for parameter expressions (never ``eval``).
 
 Accepted: numbers, names of diagram parameters, ``pi`` and ``e``, ``+ - * / ** %`` and ``@``,
-unary ``+``/``-``, list/tuple literals (-> arrays), and calls of the functions in
-``FUNCTIONS`` with positional arguments.  Everything else (attribute access, subscripts,
-keywords, lambdas, comprehensions, comparisons, strings, ...) is refused with a one-line
+unary ``+``/``-``, list/tuple literals (-> arrays), indexing and slicing with whole numbers
+(``v[0]``, ``v[-1]``, ``A[1, :]``, ``v[1:3]``, ``A[:, ::2]``), and calls of the functions in
+``FUNCTIONS`` with positional arguments.  Everything else (attribute access, keywords,
+lambdas, comprehensions, comparisons, strings, ...) is refused with a one-line
 ``ExpressionError``.  Integer literals are evaluated as floats, so ``10**10**10`` overflows
 to a refusal at once instead of building a huge integer.
 """
@@ -97,6 +98,17 @@ def _concat(*arrays):
     return np.concatenate(parts)
 
 
+def _reshape(a, *shape):
+    a = np.asarray(a, dtype=float)
+    if not shape:
+        raise ValueError("needs the new shape, e.g. reshape(v, 2, 3)")
+    new = _shape_of(*shape)
+    if math.prod(new) != a.size:
+        raise ValueError(f"cannot give {a.size} numbers the shape "
+                         f"({', '.join(map(str, new))})")
+    return a.reshape(new)
+
+
 def _extremum(reduce):
     def f(*a):
         if not a:
@@ -118,6 +130,8 @@ FUNCTIONS = {
     "ones": lambda *s: np.ones(_shape_of(*s)),
     "diag": _diag,
     "transpose": lambda a: np.transpose(np.asarray(a, dtype=float)),
+    "reshape": _reshape,                                     # reshape(v, rows[, columns])
+    "size": lambda a: float(np.size(a)),                     # number of entries
     # polynomials as coefficient vectors, highest power first (numpy.polyval order)
     "concat": _concat,
     "polymul": _polymul,
@@ -128,13 +142,13 @@ FUNCTIONS = {
 CONSTANTS = {"pi": math.pi, "e": math.e}
 
 _FORBIDDEN = {
-    ast.Attribute: "attribute access", ast.Subscript: "subscripts", ast.Lambda: "lambdas",
+    ast.Attribute: "attribute access", ast.Lambda: "lambdas",
     ast.ListComp: "comprehensions", ast.SetComp: "comprehensions",
     ast.DictComp: "comprehensions", ast.GeneratorExp: "comprehensions",
     ast.Compare: "comparisons", ast.BoolOp: "boolean operators", ast.IfExp: "conditionals",
     ast.Dict: "dictionaries", ast.Set: "sets", ast.Starred: "star arguments",
     ast.JoinedStr: "f-strings", ast.NamedExpr: "assignments", ast.Await: "await",
-    ast.Yield: "yield", ast.YieldFrom: "yield", ast.Slice: "slices",
+    ast.Yield: "yield", ast.YieldFrom: "yield",
 }
 _BINOPS = {
     ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply, ast.Div: np.true_divide,
@@ -254,6 +268,33 @@ class _Evaluator:
         return self._check(arr)
 
     visit_Tuple = visit_List
+
+    def visit_Subscript(self, node):
+        value = np.asarray(self.visit(node.value), dtype=float)
+        if value.ndim == 0:
+            raise self.fail("indexes a single number; only arrays have entries")
+        parts = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+        index = tuple(self._index_part(p) for p in parts)
+        if len(index) > value.ndim:
+            raise self.fail(f"uses {len(index)} indices on an array of {value.ndim} "
+                            f"dimension{'s' if value.ndim > 1 else ''}")
+        try:
+            picked = value[index]
+        except (IndexError, ValueError) as exc:
+            raise self.fail(f"cannot be evaluated: {exc}") from None
+        return self._check(np.array(picked, dtype=float))
+
+    def _index_part(self, node):
+        if isinstance(node, ast.Slice):
+            return slice(*(None if p is None else self._whole(p)
+                           for p in (node.lower, node.upper, node.step)))
+        return self._whole(node)
+
+    def _whole(self, node) -> int:
+        v = np.asarray(self.visit(node), dtype=float)
+        if v.ndim != 0 or v != math.floor(v) or abs(v) > MAX_ARRAY_SIZE:
+            raise self.fail("uses an index that is not a whole number")
+        return int(v)
 
     def visit_UnaryOp(self, node):
         v = self.visit(node.operand)

@@ -39,8 +39,11 @@ def test_integer_literals_become_floats():
 
 @pytest.mark.parametrize("src, message", [
     ("a.real", "uses a forbidden construct (attribute access)"),
-    ("v[0]", "uses a forbidden construct (subscripts)"),
-    ("v[0:2]", "uses a forbidden construct (subscripts)"),
+    ("v[1.5]", "uses an index that is not a whole number"),
+    ("v[0, 0]", "uses 2 indices on an array of 1 dimension"),
+    ("a[0]", "indexes a single number; only arrays have entries"),
+    ("v[::0]", "cannot be evaluated: slice step cannot be zero"),
+    ("reshape(v, 2)", "cannot be evaluated: reshape(): cannot give 3 numbers the shape (2)"),
     ("lambda: 1", "uses a forbidden construct (lambdas)"),
     ("(lambda: 2)()", "uses a forbidden construct (lambdas)"),
     ("[x for x in v]", "uses a forbidden construct (comprehensions)"),
@@ -169,3 +172,20 @@ def test_multiline_expression_is_shown_on_one_line():
 def test_names_in():
     assert names_in("alpha * sin(a) + eye(n)") == {"alpha", "a", "n"}
     assert names_in("a +") == set()
+
+
+M = np.arange(12.0).reshape(3, 4)
+
+
+@pytest.mark.parametrize("src, expected", [
+    ("M[0]", M[0]), ("M[-1, -1]", 11.0), ("M[1, :]", M[1, :]), ("M[:, 2]", M[:, 2]),
+    ("M[0:2, 1:3]", M[0:2, 1:3]), ("M[:, ::2]", M[:, ::2]), ("M[2][1]", 9.0),
+    ("M[a - 1, a]", M[1, 2]),                                   # indices are expressions
+    ("reshape(M, 12)[5]", 5.0), ("reshape(M, 4, 3)", M.reshape(4, 3)),
+    ("reshape(concat([1, 2], [3, 4]), 2, 2) @ [1, 1]", np.array([3.0, 7.0])),
+    ("size(M)", 12.0), ("zeros(size(M[0]))", np.zeros(4)),
+])
+def test_indexing_slicing_and_reshape_agree_with_numpy(src, expected):
+    out = evaluate(src, {**NS, "M": M})
+    np.testing.assert_array_equal(out, expected)
+    assert np.shape(out) == np.shape(expected)
