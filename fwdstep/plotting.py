@@ -174,7 +174,12 @@ def figure_bytes(fig, fmt: str = "png") -> bytes:
 
 
 def save_figure(fig, outdir: str, name: str, formats=("png",)) -> list:
-    """Write ``name.<fmt>`` for each format into ``outdir`` (created if missing); the paths."""
+    """Write ``name.<fmt>`` for each format into ``outdir`` (created if missing); the paths.
+
+    Commands pass the staging directory of a ``fwdstep.outputs.OutputDir`` (``out.dir``) as
+    ``outdir`` and commit it afterwards: that is what keeps figures from replacing files
+    fwdstep did not write, or being written through symbolic links, in the user's directory.
+    """
     formats = check_formats(formats)
     try:
         os.makedirs(outdir, exist_ok=True)
