@@ -134,9 +134,11 @@ def _load(path: str, locked: tuple, gravity: float):
 
 
 def load_model(block, robot: str, urdf: str, locked_joints, gravity: float):
-    """(model, data, model without gravity, its data) for a block's robot description."""
+    """(model, data, model without gravity, its data) for a block's robot description, which
+    is kept in ``block.robot_description`` (compared between plant and regressor)."""
     _pinocchio(block.name, block.type_name)
     path, locked = _description(block, robot, urdf, locked_joints)
+    block.robot_description = (path, locked, float(gravity))
     loaded = _load(path, locked, float(gravity))
     if isinstance(loaded, str):
         raise ParameterError(f"block {block.name!r}: the robot {loaded}", block=block.name)
@@ -293,6 +295,7 @@ class URDFArm(MechanicalPlant):
         theta, _ = _parameter_form(self, self.model, robot, urdf, locked_joints, gravity,
                                    parameters)
         self.declare_output("theta", theta.shape, feedthrough=(), label=r"$\theta$")
+        self.parameter_form = parameters
         self.set_param("theta", theta)
         if coulomb_velocity <= 0.0:
             raise ParameterError(f"block {self.name!r} parameter 'coulomb_velocity' must be "
@@ -379,6 +382,22 @@ class URDFRegressor(Block):
         for name in ("q", "qdot", "zeta", "zetad"):
             self.declare_input(name, (n,))
         self.declare_output("Y", (n, theta.size), feedthrough=("q", "qdot", "zeta", "zetad"))
+        self.parameter_form = parameters
+
+    def check_source(self, port, source, source_port):
+        """At load time: the plant driving ``q`` must be the same robot, with the same locked
+        joints, gravity and parameter form (else Y theta is not that plant's torque)."""
+        if port != "q" or not isinstance(source, URDFArm):
+            return None
+        mine = (*self.robot_description, self.parameter_form)
+        theirs = (*source.robot_description, source.parameter_form)
+        names = ("URDF file", "locked joints", "gravity", "parameters")
+        for name, a, b in zip(names, mine, theirs):
+            if a != b:
+                return (f"the regressor's {name} ({a!r}) differs from the plant's "
+                        f"({b!r}); give both blocks the same robot, locked_joints, gravity and "
+                        f"parameters")
+        return None
 
     def output(self, t, x, u):
         q, qdot, zeta, zetad = u

@@ -127,6 +127,15 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
                     f"block '{blk.name}' input port '{port.name}' is not connected",
                     file=entry.file if entry else spec.file,
                     line=entry.line if entry else None, block=blk.name, port=port.name))
+    for (db, dp), (sb, sp) in drivers.items():
+        # a block may check the block that drives one of its inputs (a regressor against its
+        # plant: the same gravity, kinematics, parameter form); None means consistent
+        check = getattr(by_name[db], "check_source", None)
+        message = check(dp, by_name[sb], sp) if check is not None else None
+        if message:
+            errors.append(WiringError(f"connection {sb}.{sp} -> {db}.{dp}: {message}",
+                                      file=where_file[(db, dp)], line=where[(db, dp)],
+                                      block=db, port=dp))
     if errors:
         errors[0].more = errors[1:]
         raise errors[0]

@@ -244,3 +244,26 @@ def test_without_pinocchio_blocks_are_listed_with_a_hint_and_refused_in_one_line
     assert run.stderr.strip().count("\n") == 0
     assert "block 'arm' (URDFArm) needs pinocchio: install fwdstep[robots]" in run.stderr
     assert f"{diagram}:2" in run.stderr
+
+
+def test_a_regressor_that_does_not_match_its_plant_is_refused_at_load_time(tmp_path):
+    import fwdstep
+    from fwdstep.errors import WiringError
+    diagram = tmp_path / "mismatch.yaml"
+    diagram.write_text(textwrap.dedent("""\
+        blocks:
+          arm: {type: URDFArm, robot: ur5, parameters: base}
+          Y: {type: URDFRegressor, robot: ur5, parameters: base, gravity: 0}
+          tau: {type: Constant, value: [0, 0, 0, 0, 0, 0]}
+        connections:
+          - tau.y -> arm.tau
+          - arm.q -> Y.q
+          - arm.qdot -> Y.qdot, Y.zeta, Y.zetad
+        simulation: {t_final: 0.01, step: 0.001}
+        """))
+    with pytest.raises(WiringError) as info:
+        fwdstep.load_diagram(str(diagram))
+    assert str(info.value) == (
+        f"{diagram}:7: connection arm.q -> Y.q: the regressor's gravity (0.0) differs from "
+        "the plant's (9.81); give both blocks the same robot, locked_joints, gravity and "
+        "parameters")
