@@ -29,6 +29,9 @@ What it promises:
   fwdstep's own results; nothing, not even ``force``, replaces another file, a directory or a
   symbolic link with the same name as a new file.  ``expected`` names the files a run will
   write, so these refusals happen before any work is done.
+* **A killed writer leaves nothing half done.**  The next run into the directory (holding
+  the lock, so nobody else is writing) puts back a directory a killed commit had renamed
+  aside and removes abandoned staging directories.
 * **Symbolic links are not followed.**  New files are created in the fresh staging
   directory, where nobody else can plant a link; links in the old directory are moved like
   any other foreign entry, never written through.
@@ -88,6 +91,7 @@ class OutputDir:
                               f"{exc.strerror}") from None
         self._lock()
         try:
+            self._recover()
             self._check_existing()
             self.dir = tempfile.mkdtemp(prefix=f".{self.name}.fwdstep-new-", dir=self.parent)
         except BaseException:
@@ -113,6 +117,7 @@ class OutputDir:
         os.makedirs(out.parent, exist_ok=True)
         out._lock()
         try:
+            out._recover()
             out._check_existing()
             yield out
         finally:
@@ -123,6 +128,31 @@ class OutputDir:
         if os.path.lexists(self.target) and not os.path.isdir(self.target):
             raise OutputError(f"output directory {printable(self.requested)} exists and is not "
                               "a directory")
+        cwd = os.path.realpath(os.getcwd())
+        if os.path.isdir(self.target) and (cwd == self.target or
+                                           cwd.startswith(self.target + os.sep)):
+            raise OutputError(f"output directory {printable(self.requested)} is (or contains) "
+                              "the current directory; fwdstep replaces an output directory as "
+                              "a whole, so choose another one with -o")
+
+    def _recover(self) -> None:
+        """Under the lock, leftovers of a writer that was killed (SIGKILL, power loss) are
+        its own: a directory renamed aside with no new one in place is put back (the
+        complete old results), and abandoned staging directories are removed."""
+        prefix = f".{self.name}.fwdstep-"
+        try:
+            entries = sorted(os.listdir(self.parent))
+        except OSError:
+            return
+        for entry in entries:
+            path = os.path.join(self.parent, entry)
+            if not entry.startswith(prefix) or os.path.islink(path) or not os.path.isdir(path):
+                continue
+            kind = entry[len(prefix):].split("-", 1)[0]
+            if kind == "old" and not os.path.lexists(self.target):
+                os.rename(path, self.target)
+            elif kind in ("old", "new") and os.stat(path).st_uid == os.getuid():
+                shutil.rmtree(path, ignore_errors=True)
 
     def _check_existing(self) -> None:
         if not os.path.isdir(self.target):

@@ -167,6 +167,19 @@ def test_kill_between_the_renames_never_mixes_old_and_new(tmp_path, monkeypatch)
     assert not outdir.exists()
     aside = Path(calls[0][1])
     assert {n: (aside / n).read_bytes() for n in old} == old
+    # the next writer (holding the lock) puts the complete old results back first
+    with OutputDir(str(outdir), force=False, expected=["other.txt"]):
+        assert {n: (outdir / n).read_bytes() for n in old} == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.yaml", "out"]
+
+
+def test_the_current_directory_is_not_swapped_away(tmp_path, capsys, monkeypatch):
+    path = write(tmp_path, DIAGRAM)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["run", path, "-o", ".", "-q", "--force"]) == 2
+    assert capsys.readouterr().err == (
+        "fwdstep: output directory . is (or contains) the current directory; fwdstep replaces "
+        "an output directory as a whole, so choose another one with -o\n")
 
 
 # ------------------------------------------------------------------ signals
