@@ -212,6 +212,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     next_report = wall0 + 1.0
     absx = np.empty((B, N))
     single = B == 1 and N > 0
+    checked = 0                               # log rows already checked for NaN/inf
 
     with np.errstate(all="ignore"):
         try:
@@ -261,6 +262,10 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                     if now >= next_report:
                         progress((n + 1) / n_steps)
                         next_report = now + 1.0
+                if B == 1 and n % 8192 == 8191:    # an output gone NaN/inf: stop early,
+                    if not _rows_finite(prog.logs, checked, row):    # _finish says where
+                        break
+                    checked = row
             else:
                 t = n_steps * h
                 end = events.final if events is not None else None
@@ -380,6 +385,10 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
         error.result = result
         raise error
     return result
+
+
+def _rows_finite(logs, lo: int, hi: int) -> bool:
+    return all(np.isfinite(L[lo:hi]).all() for L in logs)
 
 
 def _first_non_finite_output(d: CompiledDiagram, t_log, logs, row, alive, died_at):

@@ -381,3 +381,14 @@ def test_an_output_changing_shape_is_blamed_on_its_block_not_downstream(tmp_path
     assert str(info.value) == ("block 'frag' (ShapeshifterTestBlock) output 'y' has shape (3,) "
                                "at t = 0.5, but declares (2,)")
     assert info.value.block == "frag" and info.value.result.t[-1] == pytest.approx(0.49)
+
+
+def test_a_non_finite_output_stops_a_long_run_early(tmp_path):
+    # 10^6 steps of 0.1 ms; big.y overflows at t = 0.1798: the run stops within 8192 steps
+    text = OVERFLOW.replace("t_final: 1, step: 0.01", "t_final: 100, step: 0.0001")
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(fwdstep.load_diagram(write(tmp_path, text)))
+    assert str(info.value).startswith("simulation diverged at t = 0.1798: block 'big' (Gain) "
+                                      "output 'y'[0] = inf is not finite")
+    assert info.value.result.steps < 1798 + 8192
+    assert info.value.result.t[-1] == pytest.approx(0.1798)
