@@ -75,6 +75,7 @@ class EventPlan:
     final: Event | None
     events: list
     instants: list = field(default_factory=list)
+    start: Event | None = None           # the event at t = 0 (if its blocks update there)
 
     @property
     def discrete(self) -> bool:
@@ -150,7 +151,9 @@ def plan_events(d, h: float, n_steps: int) -> EventPlan | None:
         hi = math.nextafter(end.lo, -math.inf) if end else math.inf
         subs.append(SubStep(a, (n + 1) * h, lo, hi, upd))
         steps[n] = subs
-    return EventPlan(steps=steps, final=at_grid.get(n_steps), events=events, instants=instants)
+    first = at_grid.get(0)
+    return EventPlan(steps=steps, final=at_grid.get(n_steps), events=events, instants=instants,
+                     start=first if first is not None and first.updates else None)
 
 
 def _order_updates(d, events: list) -> None:

@@ -92,7 +92,8 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
 
     with np.errstate(all="ignore"):
         try:
-            x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
+            x[...] = (initial_state(d, event=plan.start if plan is not None else None)
+                      if x0 is None else np.asarray(x0, dtype=float))
             g = 0                                  # next grid row to record
             for a, b, lo, hi, updates in segments:
                 t = a

@@ -134,13 +134,37 @@ def _block_error(step, inner, t, u) -> BlockRuntimeError:
         time=t, block=step.block.name)
 
 
-def initial_state(d: CompiledDiagram, t0: float = 0.0) -> np.ndarray:
+def initial_state(d: CompiledDiagram, t0: float = 0.0, event=None) -> np.ndarray:
     """x(0): declared initial values, then blocks that start from their inputs (reference
-    dynamics: z(0) = qdot_d(0) - alpha_ell (q(0) - q_d(0)))."""
+    dynamics: z(0) = qdot_d(0) - alpha_ell (q(0) - q_d(0))).  ``event``: discrete blocks
+    that sample at t0 (``fwdstep.events``): those inputs are computed with their samples of
+    t0 (a sampled controller's reference dynamics start from the sampled q(0), not from the
+    hold's initial value); their own states are returned unchanged, the run updates them."""
     x = d.x0.copy()
     needing = [s for s in d.stateful if s.block.init_from_inputs]
     if not needing:
         return x
+    _, outputs, sig = _make_evaluator(d)
+    held = [(st.state, x[:, st.state].copy()) for st in event.updates] if event else []
+
+    def evaluate(t):
+        outputs(t, x)
+        return sig
+
+    with np.errstate(all="ignore"):
+        for _ in range(len(needing) + 1):
+            if held:
+                for sl, v in held:
+                    x[:, sl] = v
+                apply_updates(event, t0, x, evaluate)
+            outputs(t0, x)
+            for s in needing:
+                u = tuple(sig[i] for i in s.inputs)
+                x[:, s.state] = np.broadcast_to(s.block.initial_state(t0, u),
+                                                (d.batch, s.block.n_states))
+    for sl, v in held:
+        x[:, sl] = v
+    return x
     _, outputs, sig = _make_evaluator(d)
     with np.errstate(all="ignore"):
         for _ in range(len(needing) + 1):
@@ -216,7 +240,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
 
     with np.errstate(all="ignore"):
         try:
-            x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
+            x[...] = (initial_state(d, event=events.start if events is not None else None)
+                      if x0 is None else np.asarray(x0, dtype=float))
             for n in range(n_steps):
                 t = n * h
                 if n in special:              # a step that touches a discontinuity
