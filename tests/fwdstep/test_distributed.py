@@ -193,3 +193,38 @@ def test_cli_max_memory(path, tmp_path, capsys):
     code = cli.main(["sweep", path, "--grid", "K=1,2", "--max-memory", "lots", "-o",
                      str(tmp_path / "o")])
     assert code == 2 and "must be a size like 2GB" in capsys.readouterr().err
+
+
+def test_sigterm_keeps_finished_batches_and_resume_finishes(path, tmp_path):
+    """A real SIGTERM (a batch system's kill) to a running ``fwdstep sweep``: exit 143, the
+    finished batches stay in OUTDIR/parts and in the table; --resume runs only the rest."""
+    import csv
+    import signal
+    import subprocess
+    import sys
+    import time
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = str(tmp_path / "o")
+    args = ["sweep", path, "--grid", "K=" + ",".join(str(k) for k in range(20, 30)),
+            "--set", "simulation.t_final=1", "--workers", "1", "--batch-size", "1",
+            "-o", out, "-q"]
+    code = f"import sys, cli; sys.exit(cli.main({args!r}))"
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=root)
+    parts = os.path.join(out, "parts")
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(glob.glob(os.path.join(parts, "*.npz"))) < 2:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(300) in (143, 130)
+    with open(os.path.join(out, "sweep.csv")) as fh:
+        rows = list(csv.DictReader(fh))
+    done = [r for r in rows if r["status"] == "ok"]
+    assert len(rows) == 10 and 2 <= len(done) < 10
+    assert len(glob.glob(os.path.join(parts, "*.npz"))) == len(done)
+    assert all(r["status"] == "interrupted" for r in rows if r not in done)
+    assert cli.main(args[:-5] + ["-o", out, "-q", "--resume"]) == 0   # in one batch
+    with open(os.path.join(out, "sweep.csv")) as fh:
+        again = list(csv.DictReader(fh))
+    assert [r["status"] for r in again] == ["ok"] * 10
+    for r in done:                        # the finished variants were kept, not re-run
+        assert again[int(r["variant"])]["final_abs_error"] == r["final_abs_error"]
