@@ -103,3 +103,24 @@ log: [arm.q, arm.qdot]
                       rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(np.r_[r["arm.q"][-1], r["arm.qdot"][-1]], after.y[:, -1],
                                atol=1e-8)
+
+
+def test_robustness_study_smoke(tmp_path):
+    """examples/study_robustness.py builds and runs three scenarios (0.2 s, one controller):
+    the edited diagrams load, the error is measured on the true q and torques are bounded
+    by the saturation limits where there is one."""
+    import importlib.util
+    import json
+    path = os.path.join(DIAGRAMS, "..", "examples", "study_robustness.py")
+    spec = importlib.util.spec_from_file_location("study_robustness", path)
+    study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(study)
+    out = tmp_path / "out"
+    assert study.main(["--smoke", "--out", str(out), "--workers", "1",
+                       "--only", "computed torque", "nominal", "saturation", "noise"]) == 0
+    results = {r["scenario"]: r for r in json.loads((out / "results.json").read_text())}
+    assert set(results) == {"nominal", "saturation", "noise"}
+    assert all(r["status"] == "ok" for r in results.values())
+    assert results["saturation"]["max_torque"] <= max(study.TORQUE_LIMIT) + 1e-12
+    assert results["nominal"]["max_torque"] > max(study.TORQUE_LIMIT)
+    assert (out / "diagrams" / "computed_torque__noise.yaml").exists()
