@@ -99,14 +99,18 @@ class Step(Block):
         self.declare_output("y", shape, feedthrough=())
         for key, arr in arrays.items():
             self.set_param(key, np.broadcast_to(arr, shape))
+        # the jump times, also kept outside p: variants that jump at different times never
+        # share a batch (its steps would be split at every variant's times)
+        p = self.p
+        self.jumps = tuple(np.unique(p.time[np.broadcast_to(p.before != p.after,
+                                                             p.time.shape)]).tolist())
 
     def output(self, t, x, u):
         p = self.p
         return (np.where(t >= p.time, p.after, p.before),)
 
     def discontinuities(self, t_final):
-        p = self.p
-        return np.unique(p.time[np.broadcast_to(p.before != p.after, p.time.shape)])
+        return np.asarray(self.jumps)
 
 
 class _SinusoidSum(Block):
@@ -544,6 +548,7 @@ class PiecewiseConstant(Block):
         self.set_param("times", times)
         self.set_param("values", values)
         self.set_kernels(output=piecewise_output, params=("times", "values"))
+        self.jumps = tuple(times.tolist())   # outside p: never batched across other times
 
     def discontinuities(self, t_final):
-        return np.unique(self.p.times)
+        return np.asarray(self.jumps)

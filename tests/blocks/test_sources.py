@@ -9,7 +9,7 @@ from numpy.polynomial import polynomial as P
 
 from blocks.sources import Constant, MultiSine, Polynomial, RandomDisturbance, Sine, Step
 from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ParameterError
+from fwdstep.errors import ConfigError, ParameterError
 
 NO_STATE = np.zeros((1, 0))
 TIMES = (0.0, 0.37, 1.9, -2.5, 13.0)
@@ -76,10 +76,14 @@ def test_step_before_at_and_after_the_step_time():
 
 
 def test_step_batch():
-    assert_batch_matches(Step, [{"after": [1.0, 2.0], "time": 0.3},
-                                {"after": [5.0, 6.0], "before": [1.0, 1.0], "time": 1.0},
-                                {"after": [0.0, 2.0], "time": [-3.0, 2.0]}],
+    assert_batch_matches(Step, [{"after": [1.0, 2.0], "time": [0.3, 1.0]},
+                                {"after": [5.0, 6.0], "before": [1.0, 1.0], "time": [0.3, 1.0]},
+                                {"after": [0.0, 2.0], "before": [1.0, 0.5], "time": [0.3, 1.0]}],
                          times=(-4.0, 0.0, 0.3, 0.5, 1.0, 2.5))
+    # steps that jump at different times never share a batch: a run splits its steps at
+    # every jump (fwdstep.events), so batched variants would not equal their single runs
+    with pytest.raises(ConfigError, match="differ in structure"):
+        stacked(Step, [{"after": 1.0, "time": 0.3}, {"after": 1.0, "time": 1.0}])
 
 
 # --------------------------------------------------------------------------- Sine

@@ -127,6 +127,9 @@ CASES = [
      "connection 'src.y => int.u' must have the form 'block.out -> block.in[, ...]'"),
     ("metrics_missing_signal", ConfigError, 6,
      "signal 'err.y' (in log/plots/metrics) does not exist; there is no block 'err'"),
+    ("merge_key_bomb", YamlError, 10,                # <<: merge keys of aliases, doubling
+     'the document expands to more than 200000 nodes through aliases (&anchor/*alias); '
+     'refused'),
     ("missing_required_parameter", ParameterError, 3,
      "block 'g' (Gain) is missing required parameter 'gain' (scalar or (m, n) matrix)"),
     ("no_blocks", ConfigError, 1,

@@ -64,14 +64,22 @@ def test_piecewise_constant_integral_and_values(tmp_path):
         r.t < 0.25, 1.0, np.where(r.t < 0.3, -2.0, np.where(r.t < 0.77, 4.0, 0.5))))
 
 
-def test_a_step_stacked_in_a_batch_uses_every_variant_time(tmp_path):
+def test_batches_stay_exact_across_step_times(tmp_path):
+    """Variants whose steps jump at the same time batch (and equal their single runs bit for
+    bit); variants that jump at different times never share a batch, whose steps would be
+    split at every variant's times (fwdstep.sweep: batches are exact)."""
     path = tmp_path / "d.yaml"
-    path.write_text(INTEGRAL.format(kind="Step", params="after: 1.0, time: T",
-                                    solver="rk4").replace("blocks:", "parameters: {T: 0.3}\n"
-                                                                     "blocks:"))
-    specs = [fwdstep.spec.load_spec(str(path), {"T": T}) for T in (0.3, 0.35, 0.123)]
-    r = fwdstep.simulate(fwdstep.compile_batch(specs))
-    np.testing.assert_allclose(r["i.y"][-1], [0.7, 0.65, 0.877], rtol=0, atol=1e-12)
+    path.write_text(INTEGRAL.format(kind="Step", params="after: A, time: T", solver="rk4")
+                    .replace("blocks:", "parameters: {T: 0.3, A: 1.0}\nblocks:")
+                    .replace("type: Integrator", "type: TransferFunction, num: [1], den: [1, 1]"))
+    specs = [fwdstep.spec.load_spec(str(path), {"T": 0.35, "A": A}) for A in (1.0, -2.0, 0.5)]
+    batch = fwdstep.simulate(fwdstep.compile_batch(specs))
+    for k, A in enumerate((1.0, -2.0, 0.5)):
+        single = fwdstep.simulate(fwdstep.load_diagram(str(path), {"T": 0.35, "A": A}))
+        np.testing.assert_array_equal(batch["i.y"][:, k], single["i.y"])
+    specs = [fwdstep.spec.load_spec(str(path), {"T": T}) for T in (0.3, 0.35)]
+    with pytest.raises(fwdstep.ConfigError, match="differ in structure"):
+        fwdstep.compile_batch(specs)
 
 
 ORDER = """
