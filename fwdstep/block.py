@@ -244,7 +244,9 @@ class Block:
         stage of a step that ends at time T is evaluated at a time < T (left limit), every
         stage of the next step at a time >= T (right limit).  A block's output must
         therefore be right-continuous: use ``t >= T``, never ``t > T``.  For many regular
-        instants use ``fwdstep.events.sample_instants``.  docs/discrete-time.md."""
+        instants use ``fwdstep.events.sample_instants``.  Keep the times (or the period) in
+        an attribute set in ``setup``, outside ``p``, so that variants with other times never
+        share a batch (one batch, one grid).  docs/discrete-time.md."""
         return _NO_TIMES
 
     def update(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
