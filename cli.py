@@ -138,7 +138,9 @@ def _results_command(args):
         from fwdstep import commands
         code = commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
                                 plots=not args.no_plots, quiet=args.quiet, backend=args.backend,
-                                formats=tuple(dict.fromkeys(args.figure_format or ["png"])))
+                                formats=tuple(dict.fromkeys(args.figure_format or ["png"])),
+                                max_log_memory=args.max_log_memory,
+                                log_to_disk=args.log_to_disk)
         if args.report and code != 2:            # partial results get a report too
             from fwdstep.report import cmd_report
             code = cmd_report(args.outdir or commands.default_outdir(args.diagram)) or code
