@@ -57,8 +57,21 @@ def subscript(label: str, sub: str) -> str:
     if not sub:
         return label
     if label.startswith("$") and label.endswith("$") and label.count("$") == 2:
-        return f"{label[:-1]}_{{{sub}}}$"
+        return f"${{{label[1:-1]}}}_{{{sub}}}$"
     return f"{label}$_{{{sub}}}$"
+
+
+def safe_label(label: str) -> str:
+    """``label`` if matplotlib can typeset it, else the same text shown literally (a typo in
+    a diagram's mathtext must not stop the figures)."""
+    if label.count("$") < 2:
+        return label
+    from matplotlib.mathtext import MathTextParser
+    try:
+        MathTextParser("path").parse(label)
+        return label
+    except ValueError:
+        return label.replace("$", r"\$")
 
 
 def signal_info(source, name: str) -> SignalInfo:
@@ -80,7 +93,7 @@ def signal_info(source, name: str) -> SignalInfo:
     else:
         real = (getattr(source, "aliases", None) or {}).get(name, name)
         meta.update({k: v for k, v in stored.get(real, stored.get(name, {})).items() if v})
-    return SignalInfo(name, meta["label"] or name, meta["unit"] or "",
+    return SignalInfo(name, safe_label(meta["label"] or name), meta["unit"] or "",
                       tuple(meta["components"] or ()))
 
 

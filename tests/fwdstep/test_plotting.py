@@ -199,3 +199,10 @@ def test_plotting_never_switches_the_callers_backend(tmp_path):
                          cwd=str(tmp_path))
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["svg", "False"]
+
+
+def test_a_label_matplotlib_cannot_typeset_is_shown_literally(tmp_path):
+    r = _run(tmp_path, LABELLED.replace("'$\\Delta q$'", "'$\\Deltaq$'"))
+    fig = result_figures(r)["decay"]
+    fig.canvas.draw()                                  # typesetting would raise here
+    assert fig.axes[0].get_ylabel() == "\\$\\Deltaq\\$ [rad]"
