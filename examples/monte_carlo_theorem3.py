@@ -32,6 +32,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 import matplotlib  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -113,6 +114,8 @@ def main(argv=None) -> int:
     fig.colorbar(sc, ax=ax, label=r"payload $m_e$ [kg] (controller assumes 2)")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.set_xticks([0.2, 0.5, 1, 2, 3], ["0.2", "0.5", "1", "2", "3"])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel(r"disturbance frequency $\omega$ [rad/s]")
     ax.set_ylabel(r"max $|\Delta q|$, last 20% [rad]")
     ax.grid(True, which="both", alpha=0.3)

@@ -156,3 +156,33 @@ def test_variants_differing_in_a_flag_are_not_stacked():
     assert "transpose_a" in prod.stacked_params
     assert (structure_signature([prod("p", a_shape=[2, 2], b_shape=[2], transpose_a=True)])
             == structure_signature([prod("p", a_shape=[2, 2], b_shape=[2])]))
+
+
+def test_a_number_kept_outside_p_splits_the_batch():
+    """A block that keeps a parameter in a private attribute (not in ``p``) must not be
+    stacked with a variant whose attribute differs: ``stack_blocks`` would give it the first
+    variant's number.  What ``finalize`` recomputes from the stacked ``p`` does not split."""
+    from fwdstep.block import Block, Param
+    from fwdstep.compiler import stack_blocks, structure_signature
+
+    class Hidden(Block):
+        """Test-only: y = k u with k kept outside p (a block written carelessly)."""
+        params = {"k": Param("float"), "g": Param("float", 1.0)}
+
+        def setup(self, k, g):
+            self.declare_input("u", (2,))
+            self.declare_output("y", (2,))
+            self._k = k                          # not stacked: must split
+            self.set_param("g", g)
+            self.finalize(1)
+
+        def finalize(self, batch):
+            self._g_first = self.p.g[0]          # recomputed after stacking: must not split
+
+    a, b, c = Hidden("h", k=1.0), Hidden("h", k=2.0), Hidden("h", k=1.0, g=3.0)
+    assert structure_signature([a]) != structure_signature([b])
+    assert structure_signature([a]) == structure_signature([c])
+    with pytest.raises(ConfigError, match="differ in structure"):
+        stack_blocks([[a], [b]])
+    stacked = stack_blocks([[a], [c]])[0]
+    np.testing.assert_array_equal(stacked.p.g, [1.0, 3.0])

@@ -309,3 +309,14 @@ def test_the_reported_examples(capsys, tmp_path):
         rows = list(csv.DictReader(fh))
     assert [r["status"] for r in rows] == ["ok", "diverged"]
     assert float(rows[1]["diverged_at"]) == pytest.approx(0.1)
+
+
+def test_unbatchable_settings_run_one_variant_per_batch(path):
+    """The compiled backend runs single variants; such variants are never batched."""
+    from fwdstep.compiler import instantiate_variants
+    from fwdstep.spec import load_spec
+    from fwdstep.sweep import plan_batches
+    specs = [load_spec(path, {"K": k, "simulation.backend": b})
+             for k in (10, 20, 30) for b in ("numpy", "compiled")]
+    batches = plan_batches(specs, instantiate_variants(specs), "e.y")
+    assert sorted(batches) == [[0, 2, 4], [1], [3], [5]]
