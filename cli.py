@@ -5,6 +5,8 @@ import sys
 
 
 _DIAGRAM_HELP = "the diagram file (YAML; docs/diagram-format.md)"
+_PLUGIN_HELP = ("a Python file defining more block types (repeatable; docs/writing-blocks.md); "
+                "diagrams name block types, never Python files")
 _SET_HELP = ("replace a value before building (repeatable): NAME (a parameter), BLOCK.PARAM, "
              "SUB.PARAM, SUB.BLOCK.PARAM, simulation.SETTING or log=[blk.port, ...]")
 
@@ -30,6 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="simulate a diagram; write result.npz, summary.json, PNGs")
     run.add_argument("diagram", help=_DIAGRAM_HELP)
     run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
+    run.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
     run.add_argument("-o", "--outdir", default=None,
                      help="output directory (default: out/<diagram name>)")
     run.add_argument("--force", action="store_true", help="overwrite existing results")
@@ -47,9 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
     val = sub.add_parser("validate", help="load and compile a diagram (exit 0 or 2)")
     val.add_argument("diagram", help=_DIAGRAM_HELP)
     val.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
+    val.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
 
     blk = sub.add_parser("blocks", help="list the block library, or show one block's doc")
     blk.add_argument("name", nargs="?", help="a block type (e.g. Gain): show its documentation")
+    blk.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
 
     sch = sub.add_parser("schema", help="print the JSON Schema of the diagram format (from the "
                                         "block registry), for editors")
@@ -70,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--seed-parameter", default=None, metavar="NAME",
                     help="give each variant its own integer seed in diagram parameter NAME")
     sw.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    sw.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                    help=_PLUGIN_HELP)
     sw.add_argument("--sequential", action="store_true",
                     help="run variants one by one instead of in batches")
     sw.add_argument("--workers", type=int, default=None, metavar="N",
@@ -207,6 +217,9 @@ def _main(argv=None) -> int:
         return 2 if exc.code not in (0, None) else 0
     from fwdstep import commands
     try:
+        if getattr(args, "plugin", None):        # user-chosen block files, before anything
+            from fwdstep.registry import load_plugins
+            load_plugins(args.plugin)
         code = _results_command(args)
         if code is not None:
             return code

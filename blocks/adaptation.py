@@ -104,26 +104,39 @@ class AdaptationLaw(Block):
         self.finalize(1)
 
     def finalize(self, batch: int) -> None:
-        if self._matrix_gain:
-            gT = self.p.gamma_T
-            self._gT = gT[0] if gT.shape[0] == 1 else None
-            self._gT_batched = gT
-
-    def output(self, t, x, u):
-        return (x[:, 0],) if self._vector else (x,)
-
-    def derivative(self, t, x, u):
-        W, e = u
         if self._vector:
-            dx = -self.p.gamma * np.sum(W * e, axis=1, keepdims=True)
+            self.set_kernels(output=adaptation_scalar_output,
+                             derivative=adaptation_vector_derivative, params=("gamma",))
+        elif self._matrix_gain:
+            self.set_kernels(output=adaptation_output, derivative=adaptation_matrix_derivative,
+                             params=("gamma_T",))
         else:
-            v = np.matmul(e[:, None, :], W)[:, 0, :]          # W^T e, (B, p)
-            if not self._matrix_gain:
-                dx = -self.p.gamma * v
-            elif self._gT is not None:
-                dx = -(v @ self._gT)
-            else:
-                dx = -np.matmul(v[:, None, :], self._gT_batched)[:, 0, :]
-        if dx.shape[0] != x.shape[0]:      # inputs and gains not batched, state batched
-            dx = np.broadcast_to(dx, x.shape)
-        return dx
+            self.set_kernels(output=adaptation_output, derivative=adaptation_derivative,
+                             params=("gamma",))
+
+
+# ---------------------------------------------------------------- kernels (one definition)
+def adaptation_output(t, x, W, e, gamma):
+    """theta_hat = x."""
+    return (x,)
+
+
+def adaptation_scalar_output(t, x, W, e, gamma):
+    """theta_hat = x (one parameter, a scalar signal)."""
+    return (x[:, 0],)
+
+
+def adaptation_vector_derivative(t, x, W, e, gamma):
+    """theta_hat' = -gamma W . e (one parameter: W is a vector)."""
+    dx = -gamma * np.sum(W * e, axis=1).reshape((-1, 1))
+    return dx + np.zeros_like(x)           # (B, 1) also when only the state is batched
+
+
+def adaptation_derivative(t, x, W, e, gamma):
+    """theta_hat' = -gamma_i (W^T e)_i (diagonal gain)."""
+    return -gamma * ko.bvecmat(e, W) + np.zeros_like(x)
+
+
+def adaptation_matrix_derivative(t, x, W, e, gamma_T):
+    """theta_hat' = -Gamma W^T e (symmetric positive definite gain)."""
+    return -ko.bvecmat(ko.bvecmat(e, W), gamma_T) + np.zeros_like(x)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fwdstep import kernelops as ko
 from fwdstep.block import Block, Param, as_written
 from fwdstep.errors import ParameterError
 from fwdstep.linear import LinearForm
@@ -10,6 +11,96 @@ from fwdstep.registry import register
 
 #: Largest signal a scalar Gain or a Sum describes as a dense LinearForm for fusion.
 MAX_FUSED_SIZE = 2000
+
+
+# ---------------------------------------------------------------- kernels (one definition)
+def gain_scalar_output(t, x, u, K):
+    """y = K u, K stored with u's rank (B, 1, ..., 1)."""
+    return (K * u,)
+
+
+def gain_matrix_output(t, x, u, K_T):
+    """y = K u for a vector u: y[b] = u[b] @ K^T[b]."""
+    return (ko.bvecmat(u, K_T),)
+
+
+def sum_output(t, x, u, signs):
+    """y = sum_j s_j u_j; signs stored (B, k, 1, ..., 1) so signs[:, j] has u_j's rank."""
+    y = signs[:, 0] * u[0]
+    for j in range(1, len(u)):
+        y = y + signs[:, j] * u[j]
+    return (y,)
+
+
+def _transposed(m, flag):
+    """op(m) per variant: m^T[b] where flag[b] != 0 (flag (B,) or (1,))."""
+    plain = np.ascontiguousarray(m)
+    swapped = np.ascontiguousarray(m.transpose((0, 2, 1)))
+    if flag.shape[0] == 1:
+        return swapped if flag[0] != 0.0 else plain
+    out = np.empty((max(m.shape[0], flag.shape[0]),) + swapped.shape[1:])
+    for b in range(out.shape[0]):
+        out[b] = swapped[b if m.shape[0] > 1 else 0] if flag[b] != 0.0 else \
+            plain[b if m.shape[0] > 1 else 0]
+    return out
+
+
+def product_mm_output(t, x, a, b, transpose_a, transpose_b):
+    """y = op(a) op(b), both matrices."""
+    return (ko.bmatmul(_transposed(a, transpose_a), _transposed(b, transpose_b)),)
+
+
+def product_mv_output(t, x, a, b, transpose_a, transpose_b):
+    """y = op(a) b, a matrix, b a vector."""
+    return (ko.bmatvec(_transposed(a, transpose_a), b),)
+
+
+def product_vm_output(t, x, a, b, transpose_a, transpose_b):
+    """y = a op(b), a a vector (row), b a matrix."""
+    return (ko.bvecmat(a, _transposed(b, transpose_b)),)
+
+
+def product_vv_output(t, x, a, b, transpose_a, transpose_b):
+    """y = a . b (a scalar per variant)."""
+    return (np.sum(a * b, axis=1),)
+
+
+def scalar_product_output(t, x, k, u):
+    """y = k u, k one number per variant."""
+    c = np.ascontiguousarray(u)
+    flat = c.reshape((c.shape[0], c.size // c.shape[0]))
+    y = flat * k.reshape((k.shape[0], 1))
+    return (y.reshape((y.shape[0],) + c.shape[1:]),)
+
+
+def selector_slice_output(t, x, u, start, stop):
+    """y = u[start:stop] (contiguous indices)."""
+    return (u[:, start:stop],)
+
+
+def selector_take_output(t, x, u, indices):
+    """y_j = u_{indices_j} (indices per variant)."""
+    return (ko.take1(u, indices),)
+
+
+def mux_output(t, x, u):
+    """y = [u1; u2; ...; uk]."""
+    n = 0
+    B = 1
+    for v in u:
+        n += v.shape[1]
+        B = max(B, v.shape[0])
+    y = np.empty((B, n))
+    c = 0
+    for v in u:
+        y[:, c:c + v.shape[1]] = v
+        c += v.shape[1]
+    return (y,)
+
+
+def demux_output(t, x, u):
+    """[y1; y2; ...] = u: packed, the outputs are consecutive parts of u."""
+    return u
 
 
 @register
@@ -33,6 +124,7 @@ class Gain(Block):
         "shape": Param("array", default=None, doc="input shape, e.g. [2]; default: n of the "
                        "matrix gain, or scalar"),
     }
+    shape_from = {"shape": ("u",)}
     example = {"gain": [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]}
 
     def setup(self, gain, shape):
@@ -55,12 +147,12 @@ class Gain(Block):
         else:
             raise ParameterError(f"block '{self.name}' parameter 'gain' must be a scalar or a "
                                  f"matrix, got shape {K.shape}", block=self.name)
-        self.set_param("K_T", K.T if self._matrix else K)
-
-    def output(self, t, x, u):
         if self._matrix:
-            return (np.matmul(u[0][:, None, :], self.p.K_T)[:, 0, :],)
-        return (self.p.K_T.reshape((-1,) + (1,) * (u[0].ndim - 1)) * u[0],)
+            self.set_param("K_T", K.T)
+            self.set_kernels(output=gain_matrix_output, params=("K_T",))
+        else:       # stored with the rank of u, so the kernel multiplies by broadcasting
+            self.set_param("K_T", K.reshape((1,) * len(in_shape)))
+            self.set_kernels(output=gain_scalar_output, params=("K_T",))
 
     def linear_form(self):
         """y = K u as a ``LinearForm``, so the engine can fuse it with other linear blocks."""
@@ -139,6 +231,7 @@ class Sum(Block):
     }
     #: kept in ``p`` per variant, so a batch may mix different signs
     stacked_params = ("signs",)
+    shape_from = {"shape": ("u1", "u2", "u3", "u4", "u5", "y")}
     example = {"signs": "+-", "shape": [2]}
 
     def setup(self, signs, shape):
@@ -151,34 +244,11 @@ class Sum(Block):
         for j in range(len(signs)):
             self.declare_input(f"u{j + 1}", shape)
         self.declare_output("y", shape)
-        self._expand = (-1,) + (1,) * len(shape)
-        # kept in p (not only as text) so a batched sweep over 'signs' stays exact
-        self.set_param("signs", [1.0 if c == "+" else -1.0 for c in signs])
-        self.finalize(1)
-
-    def finalize(self, batch: int) -> None:
-        signs = self.p.signs
-        if np.all(signs == signs[:1]):
-            row = signs[0]
-            self._columns = None
-            self._first_negative = row[0] < 0
-            self._plus = [j for j in range(1, row.size) if row[j] > 0]
-            self._minus = [j for j in range(1, row.size) if row[j] < 0]
-        else:  # variants with different signs: one multiply per input
-            self._columns = [signs[:, j].reshape(self._expand) for j in range(signs.shape[1])]
-
-    def output(self, t, x, u):
-        if self._columns is not None:
-            y = self._columns[0] * u[0]
-            for j in range(1, len(u)):
-                y = y + self._columns[j] * u[j]
-            return (y,)
-        y = -u[0] if self._first_negative else u[0]
-        for j in self._plus:
-            y = y + u[j]
-        for j in self._minus:
-            y = y - u[j]
-        return (y,)
+        # kept in p (not only as text) so a batched sweep over 'signs' stays exact; stored
+        # (k, 1, ..., 1) so that signs[:, j] has the rank of the signals
+        values = np.array([1.0 if c == "+" else -1.0 for c in signs])
+        self.set_param("signs", values.reshape((len(signs),) + (1,) * len(shape)))
+        self.set_kernels(output=sum_output, params=("signs",), tuple_inputs=True)
 
     def linear_form(self):
         """y = sum_j s_j u_j as a ``LinearForm``, so the engine can fuse it with other
@@ -186,7 +256,7 @@ class Sum(Block):
         size = self.outputs["y"].size
         if size > MAX_FUSED_SIZE:
             return None
-        signs, eye = self.p.signs, np.eye(size)
+        signs, eye = self.p.signs.reshape(self.p.signs.shape[:2]), np.eye(size)
         return LinearForm(A=np.zeros((1, 0, 0)), B={}, C=[np.zeros((1, size, 0))],
                           D={(0, j): signs[:, j, None, None] * eye
                              for j in range(signs.shape[1])})
@@ -220,6 +290,7 @@ class Product(Block):
     }
     #: kept in ``p`` per variant, so a batch may mix transposes of square operands
     stacked_params = ("transpose_a", "transpose_b")
+    shape_from = {"a_shape": ("a",), "b_shape": ("b",)}
     example = {"a_shape": [3, 2], "b_shape": [2]}
 
     def setup(self, a_shape, b_shape, transpose_a, transpose_b):
@@ -244,39 +315,13 @@ class Product(Block):
         self.declare_input("a", a_shape)
         self.declare_input("b", b_shape)
         self.declare_output("y", op_a[:-1] + op_b[1:])
-        self._kind = (len(a_shape), len(b_shape))
         # flags kept in p so a batched sweep over them (possible for square a, b) stays exact
         self.set_param("transpose_a", float(transpose_a))
         self.set_param("transpose_b", float(transpose_b))
-        self.finalize(1)
-
-    def finalize(self, batch: int) -> None:
-        self._flags = []
-        for flag in (self.p.transpose_a, self.p.transpose_b):
-            if np.all(flag == flag[0]):
-                self._flags.append(bool(flag[0]))
-            else:  # per-variant choice: a (B, 1, 1) mask
-                self._flags.append((flag != 0).reshape(-1, 1, 1))
-
-    @staticmethod
-    def _op(m, flag):
-        if flag is True:
-            return m.swapaxes(-1, -2)
-        if flag is False:
-            return m
-        return np.where(flag, m.swapaxes(-1, -2), m)
-
-    def output(self, t, x, u):
-        a = self._op(u[0], self._flags[0])
-        b = self._op(u[1], self._flags[1])
-        kind = self._kind
-        if kind == (2, 2):
-            return (np.matmul(a, b),)
-        if kind == (2, 1):
-            return (np.matmul(a, b[:, :, None])[:, :, 0],)
-        if kind == (1, 2):
-            return (np.matmul(a[:, None, :], b)[:, 0, :],)
-        return (np.matmul(a[:, None, :], b[:, :, None])[:, 0, 0],)
+        kernel = {(2, 2): product_mm_output, (2, 1): product_mv_output,
+                  (1, 2): product_vm_output, (1, 1): product_vv_output}
+        self.set_kernels(output=kernel[(len(a_shape), len(b_shape))],
+                         params=("transpose_a", "transpose_b"))
 
 
 @register
@@ -296,6 +341,7 @@ class ScalarProduct(Block):
     """
 
     params = {"shape": Param("array", default=None, doc="shape of u, e.g. [2] or [2, 5]")}
+    shape_from = {"shape": ("u", "y")}
     example = {"shape": [2, 3]}
 
     def setup(self, shape):
@@ -303,10 +349,7 @@ class ScalarProduct(Block):
         self.declare_input("k", ())
         self.declare_input("u", shape)
         self.declare_output("y", shape)
-        self._expand = (-1,) + (1,) * len(shape)
-
-    def output(self, t, x, u):
-        return (u[0].reshape(self._expand) * u[1],)
+        self.set_kernels(output=scalar_product_output)
 
 
 @register
@@ -348,20 +391,14 @@ class Selector(Block):
         self.finalize(1)
 
     def finalize(self, batch: int) -> None:
-        idx = self.p.indices.astype(np.intp)
-        if np.all(idx == idx[:1]):
-            row = idx[0]
-            step_one = row.size == 1 or np.all(np.diff(row) == 1)
-            # contiguous ranges are basic slices (views, no copy)
-            self._pick = slice(int(row[0]), int(row[-1]) + 1) if step_one else row
-            self._per_variant = None
-        else:  # variants pick different elements
-            self._per_variant = idx
-
-    def output(self, t, x, u):
-        if self._per_variant is not None:
-            return (np.take_along_axis(u[0], self._per_variant, axis=1),)
-        return (u[0][:, self._pick],)
+        idx = self.p.indices
+        row = idx[0]
+        if np.all(idx == idx[:1]) and (row.size == 1 or np.all(np.diff(row) == 1)):
+            # the same contiguous range in every variant: a basic slice (a view, no copy)
+            self.set_kernels(output=selector_slice_output,
+                             static=(int(row[0]), int(row[-1]) + 1))
+        else:
+            self.set_kernels(output=selector_take_output, params=("indices",))
 
 
 @register
@@ -388,11 +425,7 @@ class Mux(Block):
         for j, size in enumerate(sizes):
             self.declare_input(f"u{j + 1}", (size,))
         self.declare_output("y", (sum(sizes),))
-
-    def output(self, t, x, u):
-        batch = max(v.shape[0] for v in u)
-        return (np.concatenate([v if v.shape[0] == batch else
-                                np.broadcast_to(v, (batch,) + v.shape[1:]) for v in u], axis=1),)
+        self.set_kernels(output=mux_output, tuple_inputs=True)
 
 
 @register
@@ -421,7 +454,4 @@ class Demux(Block):
         self._slices = [slice(int(e - s), int(e)) for s, e in zip(sizes, ends)]
         for j, size in enumerate(sizes):
             self.declare_output(f"y{j + 1}", (size,))
-
-    def output(self, t, x, u):
-        v = u[0]
-        return tuple(v[:, s] for s in self._slices)
+        self.set_kernels(output=demux_output, packed=True)

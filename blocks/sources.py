@@ -36,6 +36,51 @@ def _derivative_names(m: int) -> list[str]:
     return ["y"] + [f"y_d{j}" for j in range(1, m + 1)]
 
 
+# ---------------------------------------------------------------- kernels (one definition)
+def constant_output(t, x, value):
+    """y = value."""
+    return (value,)
+
+
+def step_output(t, x, time, after, before):
+    """y_i = before_i for t < time_i, after_i from t = time_i on."""
+    return (np.where(t >= time, after, before),)
+
+
+def sinusoid_output(t, x, frequency, phase, offset, even_coef, odd_coef, m):
+    """Packed [y, y', ..., y^(m)]: y^(j)_i = [j = 0] offset_i + sum_k coef_jik
+    (sin if j even else cos)(w_ik t + phi_ik), the signs of d^j/dt^j folded into coef
+    (even orders in ``even_coef``, odd orders in ``odd_coef``, each (B, orders, N, K))."""
+    arg = frequency * t + phase                                   # (B, N, K)
+    s = np.sin(arg)
+    c = np.cos(arg)
+    n = arg.shape[1]
+    B = max(arg.shape[0], even_coef.shape[0], offset.shape[0])
+    Y = np.empty((B, (m + 1) * n))
+    for j in range(m + 1):
+        if j % 2 == 0:
+            v = np.sum(even_coef[:, j // 2] * s, axis=2)
+        else:
+            v = np.sum(odd_coef[:, j // 2] * c, axis=2)
+        if j == 0:
+            v = v + offset
+        Y[:, j * n:(j + 1) * n] = v
+    return Y
+
+
+def polynomial_output(t, x, coef):
+    """Packed [y, y', ..., y^(m)]: y^(j)_i = sum_k coef[j, i, k] t^k (coef (B, m+1, n, d+1),
+    the falling factorials of the derivatives folded in)."""
+    d1 = coef.shape[3]
+    powers = np.empty(d1)
+    v = 1.0
+    for k in range(d1):
+        powers[k] = v
+        v = v * t
+    y = np.sum(coef * powers, axis=3)                              # (B, m+1, n)
+    return y.reshape((y.shape[0], y.shape[1] * y.shape[2]))
+
+
 @register
 class Constant(Block):
     """Constant: y = value, a fixed array of any shape.
@@ -58,8 +103,7 @@ class Constant(Block):
         self.declare_output("y", value.shape, feedthrough=())
         self.set_param("value", value)
 
-    def output(self, t, x, u):
-        return (self.p.value,)
+        self.set_kernels(output=constant_output, params=("value",))
 
 
 @register
@@ -99,15 +143,13 @@ class Step(Block):
         self.declare_output("y", shape, feedthrough=())
         for key, arr in arrays.items():
             self.set_param(key, np.broadcast_to(arr, shape))
+
+        self.set_kernels(output=step_output, params=("time", "after", "before"))
         # the jump times, also kept outside p: variants that jump at different times never
         # share a batch (its steps would be split at every variant's times)
         p = self.p
         self.jumps = tuple(np.unique(p.time[np.broadcast_to(p.before != p.after,
                                                              p.time.shape)]).tolist())
-
-    def output(self, t, x, u):
-        p = self.p
-        return (np.where(t >= p.time, p.after, p.before),)
 
     def discontinuities(self, t_final):
         return np.asarray(self.jumps)
@@ -135,40 +177,12 @@ class _SinusoidSum(Block):
         self.set_param("even_coef", coef[0::2])
         self.set_param("odd_coef", coef[1::2])
         self._m = m
-        self._single_term = n_terms == 1
         self._scalar = scalar
         shape = () if scalar else (n_channels,)
         for name in _derivative_names(m):
             self.declare_output(name, shape, feedthrough=())
-        self.finalize(1)
-
-    def finalize(self, batch: int) -> None:
-        """Pre-slice the (possibly stacked) parameters into the arrays ``output`` uses, so a
-        call costs one sin, one cos and one multiply per output."""
-        p = self.p
-        m = self._m
-        # single sinusoid per channel: drop the sinusoid axis; scalar signal: the channel axis
-        drop = (0 if self._single_term else slice(None),)
-        lead = (slice(None),) + ((0,) if self._scalar else ())
-        self._w = p.frequency[lead + (Ellipsis,) + drop]
-        self._phi = p.phase[lead + (Ellipsis,) + drop]
-        self._offset = p.offset[lead] if np.any(p.offset) else None
-        self._coef = [(p.even_coef if j % 2 == 0 else p.odd_coef)
-                      [(slice(None), j // 2) + lead[1:] + (Ellipsis,) + drop]
-                      for j in range(m + 1)]
-
-    def output(self, t, x, u):
-        arg = self._w * t + self._phi
-        s = np.sin(arg)
-        c = np.cos(arg) if self._m else None
-        coef = self._coef
-        if self._single_term:
-            outs = [coef[j] * (c if j % 2 else s) for j in range(self._m + 1)]
-        else:
-            outs = [(coef[j] * (c if j % 2 else s)).sum(-1) for j in range(self._m + 1)]
-        if self._offset is not None:
-            outs[0] = outs[0] + self._offset
-        return tuple(outs)
+        self.set_kernels(output=sinusoid_output, packed=True, static=(m,),
+                         params=("frequency", "phase", "offset", "even_coef", "odd_coef"))
 
 
 def _per_channel(block: Block, key: str, value) -> np.ndarray:
@@ -420,18 +434,12 @@ class Polynomial(Block):
             falling = np.array([math.perm(int(ki), j) for ki in k], dtype=float)
             coef[j, :, :degree + 1 - j] = c[:, j:] * falling
         self.set_param("coef", coef)                                  # (m+1, n, d+1)
-        self._powers = np.arange(degree + 1, dtype=float)
         self._m = m
         self._scalar = scalar
         shape = () if scalar else (c.shape[0],)
         for name in _derivative_names(m):
             self.declare_output(name, shape, feedthrough=())
-
-    def output(self, t, x, u):
-        y = self.p.coef @ (float(t) ** self._powers)                  # (B, m+1, n)
-        if self._scalar:
-            y = y[..., 0]
-        return tuple(y[:, j] for j in range(self._m + 1))
+        self.set_kernels(output=polynomial_output, params=("coef",), packed=True)
 
 
 # ---------------------------------------------------------------- piecewise-constant sources

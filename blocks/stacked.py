@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fwdstep import kernelops as ko
 from fwdstep.block import Block, Param
 from fwdstep.errors import ParameterError
 from fwdstep.linear import LinearBlock, observer_form
@@ -312,17 +313,7 @@ class LinearCombination(Block):
         self.declare_input("u", shape + (self._K,))
         self.declare_output("y", shape)
         self.set_param("fixed", fixed)
-
-    def output(self, t, x, u):
-        c, v = u
-        w = c.reshape(c.shape[0], self._m)
-        if self._K > self._m:
-            fixed = self.p.fixed
-            batch = max(w.shape[0], fixed.shape[0])
-            w = np.concatenate([np.broadcast_to(w, (batch, self._m)),
-                                np.broadcast_to(fixed, (batch, fixed.shape[1]))], axis=1)
-        y = np.matmul(v.reshape(v.shape[0], self._size, self._K), w[:, :, None])
-        return (y.reshape((y.shape[0],) + self._shape),)
+        self.set_kernels(output=linear_combination_output, params=("fixed",))
 
 
 def annihilator_coefficients(omegas) -> np.ndarray:
@@ -360,6 +351,24 @@ class FrequencyParameters(Block):
         self.require_size("number of frequencies", omegas.size, MAX_BANK)
         self.declare_output("theta", (omegas.size,), feedthrough=())
         self.set_param("theta", annihilator_coefficients(omegas))
+        self.set_kernels(output=frequency_parameters_output, params=("theta",))
 
-    def output(self, t, x, u):
-        return (self.p.theta,)
+
+def linear_combination_output(t, x, c, u, fixed):
+    """y = sum_k w_k u[..., k] with w = [c, fixed] (c (B, m) or (B,) for one weight)."""
+    cc = np.ascontiguousarray(c)
+    m = cc.size // cc.shape[0]
+    K = u.shape[u.ndim - 1]
+    B = max(cc.shape[0], fixed.shape[0])
+    w = np.empty((B, K))
+    w[:, :m] = cc.reshape((cc.shape[0], m))
+    w[:, m:] = fixed
+    uc = np.ascontiguousarray(u)
+    size = uc.size // (uc.shape[0] * K)
+    y = ko.bmatvec(uc.reshape((uc.shape[0], size, K)), w)
+    return (y.reshape((y.shape[0],) + uc.shape[1:-1]),)
+
+
+def frequency_parameters_output(t, x, theta):
+    """theta = the constant coefficients (see the block)."""
+    return (theta,)

@@ -96,6 +96,8 @@ class Kernels:
     derivative: Any
     params: tuple
     static: tuple
+    packed: bool = False
+    tuple_inputs: bool = False
 
 
 def shape_str(shape: tuple) -> str:
@@ -116,6 +118,9 @@ class Block:
     #: str/bool/choice/int parameters the block stores in ``p`` and handles per variant, so a
     #: batch may mix their values (all others of those kinds split batches)
     stacked_params: ClassVar[tuple] = ()
+    #: shape parameters a diagram may leave out because the wiring fixes them: parameter ->
+    #: the ports whose shape it is (fwdstep/shapes.py), e.g. {"shape": ("u", "y")}
+    shape_from: ClassVar[dict] = {}
     #: True when ``initial_state(t0, u)`` must be called with the inputs at t0
     init_from_inputs: ClassVar[bool] = False
     #: non-empty: why this block cannot run on the compiled backend (which then refuses the
@@ -192,12 +197,17 @@ class Block:
         return value
 
     def set_kernels(self, output=None, derivative=None, params: tuple = (),
-                    static: tuple = ()) -> None:
+                    static: tuple = (), packed: bool = False,
+                    tuple_inputs: bool = False) -> None:
         """Declare the block's numerics: module-level kernel functions (see the module
         docstring and docs/writing-blocks.md).  ``params`` names arrays of ``self.p`` passed
         after the inputs, in this order; ``static`` are plain ints/floats/bools passed last
         (fixed by the structure, e.g. a size or a variant flag).  May be called again in
-        ``finalize`` to pick another kernel for a batch."""
+        ``finalize`` to pick another kernel for a batch.  ``packed``: the output kernel
+        returns one array (B, total size) holding every output flattened, in declared order
+        (for a number of outputs that depends on the parameters).  ``tuple_inputs``: the
+        kernels receive the inputs as one tuple ``u`` (for a number of inputs that depends on
+        the parameters; every input must then have the same rank)."""
         for name in params:
             if not hasattr(self.p, name):
                 raise ValueError(f"{type(self).__name__}.set_kernels: self.p has no {name!r} "
@@ -208,7 +218,13 @@ class Block:
                                  f"numbers or flags, got {type(value).__name__}")
         self.kernels = Kernels(output, derivative, tuple(params),
                                tuple(v.item() if isinstance(v, np.generic) else v
-                                     for v in static))
+                                     for v in static), packed, tuple_inputs)
+        if packed:
+            self._unpack = []
+            c = 0
+            for port in self.outputs.values():
+                self._unpack.append((c, c + port.size, port.shape))
+                c += port.size
 
     def kernel_args(self) -> tuple:
         """The arguments after the inputs: the named ``p`` arrays, then the static values."""
@@ -224,13 +240,20 @@ class Block:
         k = self.kernels
         if k is None or k.output is None:
             return ()
-        return k.output(t, x, *u, *self.kernel_args())
+        y = (k.output(t, x, u, *self.kernel_args()) if k.tuple_inputs
+             else k.output(t, x, *u, *self.kernel_args()))
+        if k.packed:
+            return tuple(y[:, a:b].reshape((y.shape[0],) + shape)
+                         for a, b, shape in self._unpack)
+        return y
 
     def derivative(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
         k = self.kernels
         if k is None or k.derivative is None:
             raise NotImplementedError(f"block type {type(self).__name__} declares states but "
                                       "no derivative kernel")
+        if k.tuple_inputs:
+            return k.derivative(t, x, u, *self.kernel_args())
         return k.derivative(t, x, *u, *self.kernel_args())
 
     # ------------------------------------------------------------------ time events

@@ -313,9 +313,14 @@ def _logged_signals(spec: DiagramSpec, index: dict) -> list:
     return out
 
 
-def load_diagram(path: str, overrides: dict | None = None) -> CompiledDiagram:
+def load_diagram(path: str, overrides: dict | None = None,
+                 plugins: list | None = None) -> CompiledDiagram:
     """Load, validate and compile a diagram file.  ``overrides`` maps parameter names to values
-    (numbers, lists or expression strings) that replace the file's before anything is built."""
+    (numbers, lists or expression strings) that replace the file's before anything is built.
+    ``plugins``: Python files defining more blocks (docs/writing-blocks.md), imported first."""
+    if plugins:
+        from .registry import load_plugins
+        load_plugins(plugins)
     return compile_spec(load_spec(path, overrides))
 
 

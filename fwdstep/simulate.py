@@ -189,7 +189,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``progress(fraction)`` is called about once per second of wall time.
     ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
     ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
-    ``fwdstep.backend_numba``; single runs only).
+    ``fwdstep.backend_numba``; batches run their variants in parallel).
     ``log_dir``: record into memory-mapped files in that directory instead of memory
     (``fwdstep run --log-to-disk``; NumPy backend).  The size is checked by the caller
     (``fwdstep.budgets.check_log``).
@@ -337,46 +337,58 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     wall0 = _time.perf_counter()
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
     prog = backend_numba.build_program(d, n_rows)
-    x = prog.xn
-    x[:] = d.x0[0]
-    alive = np.ones(1, dtype=bool)
-    died_at = np.full(1, np.nan)
+    B = d.batch
+    x = prog.xn                               # (B, N); each variant runs on its own row
+    x[...] = d.x0
+    alive = np.ones(B, dtype=bool)
+    died_at = np.full(B, np.nan)
+    rows, codes, n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))
     status, message, error = "ok", "", None
     n, t, row = 0, 0.0, 0
     next_report = wall0 + 1.0
     with np.errstate(all="ignore"):
         try:
-            x[:] = np.reshape(initial_state(d) if x0 is None else np.asarray(x0, dtype=float),
-                              -1)
+            x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
             while n < n_steps:
-                code, n_next, row = prog.run(n, min(n + backend_numba.CHUNK, n_steps), row)
-                if code:
-                    n = n_next - 1
-                    t = n * h
-                    status = "diverged"
-                    message = _divergence_message(d, x[None], bound, t + h)
-                    died_at[0], alive[0] = t + h, False
-                    break
-                n = n_next
+                n1 = min(n + backend_numba.CHUNK, n_steps)
+                if B == 1:
+                    codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
+                else:                         # variants in parallel (numba prange)
+                    prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
+                newly = (codes != 0) & alive
+                if newly.any():
+                    died_at[newly] = n_next[newly] * h     # t + h of the failing step
+                    alive &= ~newly
+                    if not alive.any():
+                        n = int(n_next.max()) - 1
+                        t = n * h
+                        row = int(rows.max())
+                        status = "diverged"
+                        message = _divergence_message(d, x, bound, t + h)
+                        break
+                n = n1
                 t = n * h
+                row = int(rows.max())
                 if progress is not None and _time.perf_counter() >= next_report:
                     progress(n / n_steps)
                     next_report = _time.perf_counter() + 1.0
             else:
                 t = n_steps * h
-                prog.final(t, row)
-                row += 1
+                for v in np.flatnonzero(alive):
+                    prog.final(t, int(rows[v]), int(v))
+                row = int(rows.max()) + 1
                 n = n_steps - 1
         except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
             status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
             error.signum = getattr(exc, "signum", 2)
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
-            error = _locate_failure(d, t, x[None].copy(), exc)
+            error = _locate_failure(d, t, x.copy(), exc)
             error.__cause__ = exc
             status, message = "error", str(error)
+    prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
-                   x[None], n, t, wall0)
+                   x, n, t, wall0)
 
 
 def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t,

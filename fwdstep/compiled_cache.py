@@ -1,0 +1,198 @@
+"""The compiled-code cache: generated modules and numba's machine code, kept so that only the
+first process running a structure pays the compile — and never usable against its user.
+
+* The directory (``$FWDSTEP_CACHE_DIR``, default ``$XDG_CACHE_HOME/fwdstep`` or
+  ``~/.cache/fwdstep``) is created private (0700).  One that is not a directory, not owned
+  by the user, or writable by group or others is refused with a one-line reason and the
+  program is compiled in memory (nothing read from or written to disk).
+* A generated module is stored under the SHA-256 of its text and its content is checked
+  against that hash before it is imported; numba's index and data files of a module are
+  checked against the hashes recorded (``seal``) right after numba wrote them, before
+  numba can load (unpickle) them.  A mismatch discards the entries and compiles afresh.
+* Any fault — a file where the directory should be, a read-only directory, a full disk, a
+  truncated or foreign entry — gives one warning line on stderr and a fresh compile; the
+  run goes on.
+"""
+from __future__ import annotations
+
+import glob
+import hashlib
+import importlib.util
+import json
+import os
+import stat
+import sys
+import tempfile
+import types
+
+PREFIX = "fwdstep_compiled_"
+
+
+def cache_dir() -> str:
+    env = os.environ.get("FWDSTEP_CACHE_DIR")
+    if env:
+        return env
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "fwdstep")
+
+
+def warn(message: str) -> None:
+    """One line on stderr (control characters shown escaped)."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in message)
+    sys.stderr.write(f"fwdstep: warning: {text}\n")
+
+
+def private_dir(path: str) -> str | None:
+    """Create ``path`` private if missing; None when it is safe to use, else the reason."""
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+    except FileExistsError:
+        return f"{path} exists and is not a directory"
+    except OSError as exc:
+        return f"cannot create {path}: {exc.strerror or exc}"
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return f"cannot inspect {path}: {exc.strerror or exc}"
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{path} is not a directory"
+    if hasattr(os, "getuid") and st.st_uid != os.getuid():
+        return f"{path} belongs to another user (uid {st.st_uid})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"{path} is writable by other users (mode {stat.S_IMODE(st.st_mode):o})"
+    if not os.access(path, os.W_OK | os.X_OK):
+        return f"{path} is not writable"
+    return None
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _numba_files(folder: str, name: str) -> list:
+    pattern = os.path.join(folder, "__pycache__", f"{name}.*")
+    return sorted(p for p in glob.glob(pattern) if p.endswith((".nbi", ".nbc")))
+
+
+def _manifest(folder: str, name: str) -> str:
+    return os.path.join(folder, f"{name}.sums")
+
+
+def _atomic_write(folder: str, path: str, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _check_numba_files(folder: str, name: str) -> None:
+    """Remove numba's files of ``name`` unless every one matches the recorded hashes."""
+    files = _numba_files(folder, name)
+    if not files:
+        return
+    try:
+        with open(_manifest(folder, name), encoding="utf-8") as fh:
+            sums = json.load(fh)
+    except (OSError, ValueError):
+        sums = None
+    ok = isinstance(sums, dict) and all(
+        os.path.basename(f) in sums and _sha(_read(f)) == sums[os.path.basename(f)]
+        for f in files)
+    if not ok:
+        warn(f"compiled-code cache entry {name} does not match its recorded hashes; "
+             "compiling afresh")
+        for f in files + [_manifest(folder, name)]:
+            try:
+                os.unlink(f)
+            except OSError:
+                pass
+
+
+def _read(path: str) -> bytes:
+    with open(path, "rb") as fh:
+        return fh.read()
+
+
+def load(source: str) -> types.ModuleType:
+    """The module of generated ``source``: from the cache when it is safe and intact,
+    else compiled in memory (with one warning line saying why)."""
+    data = source.encode()
+    digest = _sha(data)
+    name = PREFIX + digest[:32]
+    if name in sys.modules:
+        return sys.modules[name]
+    folder = cache_dir()
+    reason = private_dir(folder)
+    if reason is not None:
+        warn(f"compiled-code cache refused: {reason}; compiling in memory")
+        return _in_memory(source, name)
+    path = os.path.join(folder, f"{name}.py")
+    try:
+        if os.path.exists(path) and _sha(_read(path)) != digest:
+            warn(f"compiled-code cache entry {name}.py does not match its hash (truncated or "
+                 "replaced); compiling afresh")
+            for f in _numba_files(folder, name) + [_manifest(folder, name)]:
+                if os.path.exists(f):
+                    os.unlink(f)
+            _atomic_write(folder, path, data)
+        elif not os.path.exists(path):
+            for f in _numba_files(folder, name):   # orphans of an unknown writer
+                os.unlink(f)
+            _atomic_write(folder, path, data)
+        _check_numba_files(folder, name)
+        if _sha(_read(path)) != digest:             # re-read: what is imported is checked
+            raise OSError("entry changed while loading")
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except (OSError, ImportError, SyntaxError, ValueError) as exc:
+        warn(f"compiled-code cache unusable ({_describe(exc)}); compiling in memory")
+        return _in_memory(source, name)
+    module.__fwdstep_cache__ = (folder, name)
+    sys.modules[name] = module
+    return module
+
+
+def seal(module) -> None:
+    """Record the hashes of numba's files of ``module`` (after a compile wrote them), so a
+    later process loads only what this one wrote.  Faults only warn."""
+    where = getattr(module, "__fwdstep_cache__", None)
+    if where is None:
+        return
+    folder, name = where
+    try:
+        files = _numba_files(folder, name)
+        sums = {os.path.basename(f): _sha(_read(f)) for f in files}
+        target = _manifest(folder, name)
+        try:
+            with open(target, encoding="utf-8") as fh:
+                if json.load(fh) == sums:
+                    return
+        except (OSError, ValueError):
+            pass
+        _atomic_write(folder, target, json.dumps(sums, sort_keys=True).encode())
+    except OSError as exc:
+        warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
+    return f"{type(exc).__name__}: {exc}"[:200]
+
+
+def _in_memory(source: str, name: str) -> types.ModuleType:
+    """Compile ``source`` without any file (numba's disk cache off)."""
+    module = types.ModuleType(name)
+    module.__file__ = f"<{name}>"
+    code = compile(source.replace("CACHE = True", "CACHE = False", 1), f"<{name}>", "exec")
+    exec(code, module.__dict__)  # noqa: S102 - text generated by fwdstep, never user text
+    sys.modules[name] = module
+    return module
