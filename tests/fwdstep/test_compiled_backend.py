@@ -76,7 +76,7 @@ def loop(tmp_path):
     return str(path)
 
 
-@pytest.mark.slow          # the first run compiles (~30 s); later runs load from the cache
+@pytest.mark.slow          # the first run compiles (minutes); later runs load from the cache
 def test_compiled_equals_numpy_path(loop):
     d = fwdstep.load_diagram(loop)
     ref = fwdstep.simulate(d)
@@ -131,7 +131,8 @@ def test_a_block_without_kernel_is_refused(tmp_path):
 
     try:
         d = fwdstep.load_diagram(str(path))
-        with pytest.raises(ConfigError, match="no kernel for block f .FragileKernelless."):
+        with pytest.raises(ConfigError, match=r"backend 'compiled' cannot run block 'f' "
+                                              r"\(FragileKernelless\): it declares no kernels"):
             fwdstep.simulate(d, backend="compiled")
         assert fwdstep.simulate(d).status == "ok"
     finally:
@@ -146,3 +147,48 @@ def test_generated_module_is_cached_by_structure(loop):
     b = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 7}), 10)
     assert a.module is b.module
     assert os.path.dirname(a.module.__file__) == os.environ["FWDSTEP_CACHE_DIR"]
+
+
+def test_a_block_may_declare_why_it_cannot_run_compiled(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text("blocks:\n  c: {type: Constant, value: 1}\n  f: {type: PinocchioLike}\n"
+                    "connections:\n  - c.y -> f.u\n")
+    from fwdstep.block import Block
+    from fwdstep.registry import REGISTRY, register
+
+    @register
+    class PinocchioLike(Block):
+        """Test block calling a library numba cannot compile."""
+        params: dict = {}
+        cannot_compile = "it calls pinocchio, which numba cannot compile"
+
+        def setup(self):
+            self.declare_input("u", ())
+            self.declare_output("y", ())
+
+        def output(self, t, x, u):
+            return (u[0],)
+
+    try:
+        d = fwdstep.load_diagram(str(path))
+        with pytest.raises(ConfigError, match=r"cannot run block 'f' \(PinocchioLike\): it "
+                                              r"calls pinocchio, which numba cannot compile; "
+                                              r"use --backend numpy"):
+            fwdstep.simulate(d, backend="compiled")
+    finally:
+        REGISTRY.pop("PinocchioLike", None)
+
+
+@pytest.mark.slow
+def test_batched_compiled_run_equals_one_by_one_runs(loop):
+    """A batch runs its variants in parallel (prange), each exactly as a single run."""
+    from fwdstep.compiler import compile_batch
+    from fwdstep.spec import load_spec
+    alphas = (3.0, 4.0, 6.0)
+    batch = fwdstep.simulate(compile_batch([load_spec(loop, {"alpha": a}) for a in alphas]),
+                             backend="compiled")
+    for b, a in enumerate(alphas):
+        one = fwdstep.simulate(fwdstep.load_diagram(loop, {"alpha": a}), backend="compiled")
+        for name in one.names:
+            np.testing.assert_allclose(batch[name][:, b], one[name], rtol=0, atol=1e-12,
+                                       err_msg=name)

@@ -1,0 +1,167 @@
+"""The compiled-code cache cannot be used against its user (issue 16 item 1): a private
+directory, refused when others can write to it; entries checked against their content hash
+before import; every fault (a file where the directory should be, read-only, disk full, a
+truncated or planted entry, a replaced numba index) ends in a fresh compile with one warning
+line, never a traceback.  No numba compile is needed here: the modules are tiny."""
+import errno
+import os
+import stat
+
+import pytest
+
+pytest.importorskip("numba")
+
+from fwdstep import compiled_cache  # noqa: E402
+
+SOURCE = "# fwdstep compiled program (test)\nCACHE = True\nVALUE = {}\n"
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch):
+    path = tmp_path / "cache"
+    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(path))
+    return path
+
+
+def _name(source):
+    import hashlib
+    return compiled_cache.PREFIX + hashlib.sha256(source.encode()).hexdigest()[:32]
+
+
+def _fresh(n):
+    return SOURCE.format(f"{n!r} + {os.getpid()} * 0  # {os.urandom(4).hex()}")
+
+
+def test_cache_directory_is_created_private(folder):
+    mod = compiled_cache.load(_fresh(1))
+    assert mod.VALUE == 1
+    assert stat.S_IMODE(os.stat(folder).st_mode) == 0o700
+    assert os.path.exists(folder / f"{mod.__name__}.py")
+
+
+def test_directory_writable_by_others_is_refused(folder, capfd):
+    folder.mkdir()
+    os.chmod(folder, 0o777)
+    mod = compiled_cache.load(_fresh(2))
+    err = capfd.readouterr().err
+    assert mod.VALUE == 2
+    assert err.count("\n") == 1 and "compiled-code cache refused" in err
+    assert "writable by other users (mode 777); compiling in memory" in err
+    assert not any(p.name.endswith(".py") for p in folder.iterdir())
+
+
+def test_a_file_where_the_directory_should_be(folder, capfd):
+    folder.write_text("not a directory")
+    mod = compiled_cache.load(_fresh(3))
+    err = capfd.readouterr().err
+    assert mod.VALUE == 3 and err.count("\n") == 1
+    assert f"{folder} exists and is not a directory; compiling in memory" in err
+
+
+@pytest.mark.parametrize("code", [errno.EROFS, errno.ENOSPC])
+def test_read_only_or_full_disk_compiles_in_memory(folder, capfd, monkeypatch, code):
+    def fail(*args, **kwargs):
+        raise OSError(code, os.strerror(code), str(folder))
+    monkeypatch.setattr(compiled_cache, "_atomic_write", fail)
+    mod = compiled_cache.load(_fresh(4))
+    err = capfd.readouterr().err
+    assert mod.VALUE == 4 and err.count("\n") == 1
+    assert f"compiled-code cache unusable ({os.strerror(code)}" in err
+
+
+def test_truncated_entry_is_replaced(folder, capfd):
+    source = _fresh(5)
+    folder.mkdir(mode=0o700)
+    (folder / f"{_name(source)}.py").write_text(source[:20])
+    mod = compiled_cache.load(source)
+    err = capfd.readouterr().err
+    assert mod.VALUE == 5 and "does not match its hash" in err and err.count("\n") == 1
+    assert (folder / f"{_name(source)}.py").read_text() == source
+
+
+def test_planted_module_is_never_executed(folder, tmp_path, capfd):
+    source = _fresh(6)
+    marker = tmp_path / "pwned"
+    folder.mkdir(mode=0o700)
+    (folder / f"{_name(source)}.py").write_text(
+        f"open({str(marker)!r}, 'w').write('x')\nVALUE = 666\n")
+    mod = compiled_cache.load(source)
+    assert mod.VALUE == 6 and not marker.exists()
+    assert "does not match its hash" in capfd.readouterr().err
+
+
+def test_replaced_numba_index_is_discarded_before_numba_can_load_it(folder, capfd):
+    source = _fresh(7)
+    name = _name(source)
+    folder.mkdir(mode=0o700)
+    (folder / f"{name}.py").write_text(source)
+    pyc = folder / "__pycache__"
+    pyc.mkdir()
+    planted = pyc / f"{name}.run_one-24.py311.nbi"
+    planted.write_bytes(b"\x80\x04not what fwdstep recorded")
+    mod = compiled_cache.load(source)
+    err = capfd.readouterr().err
+    assert mod.VALUE == 7 and not planted.exists()
+    assert "does not match its recorded hashes; compiling afresh" in err
+
+
+def test_sealed_numba_files_are_kept(folder, capfd):
+    source = _fresh(8)
+    name = _name(source)
+    mod = compiled_cache.load(source)
+    pyc = folder / "__pycache__"
+    pyc.mkdir()
+    index = pyc / f"{name}.run_one-24.py311.nbi"
+    index.write_bytes(b"written by numba in this process")
+    compiled_cache.seal(mod)
+    import sys
+    del sys.modules[name]
+    again = compiled_cache.load(source)
+    assert again.VALUE == 8 and index.exists() and capfd.readouterr().err == ""
+
+
+def test_an_edited_block_changes_the_cache_key(tmp_path, monkeypatch):
+    """The generated text (hence its hash, the cache key) names the SHA-256 of every kernel's
+    source file: editing a plugin file gives another entry, never stale machine code."""
+    import fwdstep
+    from fwdstep import backend_numba
+    plugin = tmp_path / "doubler.py"
+    body = '''
+from fwdstep.block import Block
+from fwdstep.registry import register
+
+
+def doubler_output(t, x, u):
+    return (FACTOR * u,)
+
+
+FACTOR = 2.0
+
+
+@register
+class Doubler(Block):
+    """y = 2 u.
+
+    Equation: y = 2 u.
+    """
+    params = {}
+
+    def setup(self):
+        self.declare_input("u", ())
+        self.declare_output("y", ())
+        self.set_kernels(output=doubler_output)
+'''
+    plugin.write_text(body)
+    diagram = tmp_path / "d.yaml"
+    diagram.write_text("blocks:\n  c: {type: Constant, value: 1}\n  g: {type: Doubler}\n"
+                       "connections:\n  - c.y -> g.u\nsimulation: {t_final: 0.01}\n")
+    seen = []
+    monkeypatch.setattr(backend_numba.compiled_cache, "load",
+                        lambda source: seen.append(source) or None)
+    d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
+    backend_numba.build_program(d, 5)
+    plugin.write_text(body.replace("FACTOR = 2.0", "FACTOR = 3.0"))
+    backend_numba.build_program(d, 5)
+    assert len(seen) == 2 and seen[0] != seen[1]
+    changed = [a for a, b in zip(seen[0].splitlines(), seen[1].splitlines()) if a != b]
+    assert len(changed) == 1 and changed[0].startswith("# doubler.py ")
