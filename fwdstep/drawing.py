@@ -362,6 +362,8 @@ def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "au
         raise OutputError(f"cannot draw to '{path}': the file name must end in "
                           f"{', '.join('.' + f for f in FORMATS)}")
     picture = build_picture(diagram, depth)
+    if isinstance(diagram, _Unwired):
+        subsystem_ports(picture, diagram.spec.file, diagram)
     if engine == "auto":
         engine = "dot" if shutil.which("dot") else "matplotlib"
     if engine == "dot":
@@ -388,16 +390,67 @@ def _write(path: str, data: bytes) -> None:
         raise OutputError(f"cannot write the picture to {path}: {exc.strerror or exc}") from exc
 
 
+class _Unwired:
+    """What ``build_picture`` needs of a diagram that does not compile on its own (a subsystem
+    file of ``diagrams/lib``: its inputs are wired by the parent): spec and blocks."""
+
+    def __init__(self, spec, blocks):
+        self.spec, self.blocks = spec, blocks
+
+    def resolve(self, name: str) -> str:
+        return self.spec.aliases.get(name, name)
+
+
+def diagram_for_drawing(path: str, overrides: dict | None = None):
+    """The compiled diagram; for a subsystem file (one with ``ports:``) that does not compile
+    alone, its blocks and connections with its ports drawn as the frame's inputs/outputs."""
+    from .compiler import load_diagram
+    from .errors import DiagramError
+    try:
+        return load_diagram(path, overrides)
+    except DiagramError:
+        from .spec import load_spec
+        from .yamlio import read_yaml_file
+        doc = read_yaml_file(path)
+        if not isinstance(doc, dict) or not doc.get("ports"):
+            raise
+        from .graph import instantiate
+        spec = load_spec(path, overrides)
+        return _Unwired(spec, instantiate(spec))
+
+
+def subsystem_ports(picture: Picture, path: str, diagram) -> None:
+    """Add the ``ports:`` of a subsystem file as two boxes, its inputs and its outputs."""
+    from .yamlio import read_yaml_file
+    ports = (read_yaml_file(path) or {}).get("ports") or {}
+    ins, outs = ports.get("inputs") or {}, ports.get("outputs") or {}
+    blocks = {b.name: b for b in diagram.blocks}
+    if ins:
+        picture.boxes["inputs"] = Box("inputs", "inputs", "subsystem ports", [], list(ins))
+        for pname, targets in ins.items():
+            for tgt in targets if isinstance(targets, list) else [targets]:
+                blk, _, port = str(tgt).rpartition(".")
+                if blk in blocks and port in blocks[blk].inputs:
+                    shape = shape_text(blocks[blk].inputs[port].shape)
+                    picture.edges.append(("inputs", pname, blk, port, shape, False))
+    if outs:
+        picture.boxes["outputs"] = Box("outputs", "outputs", "subsystem ports", list(outs), [])
+        for pname, src in outs.items():
+            blk, _, port = str(src).rpartition(".")
+            if blk in blocks and port in blocks[blk].outputs:
+                shape = shape_text(blocks[blk].outputs[port].shape)
+                picture.edges.append((blk, port, "outputs", pname, shape, False))
+
+
 def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None = None,
               engine: str = "auto") -> int:
     """``fwdstep graph DIAGRAM -o FILE.svg``: exit 0, or 2 with one line on stderr."""
     import sys
-    from .compiler import load_diagram
     from .errors import FwdstepError, one_line
     from .spec import parse_override
     try:
         overrides = dict(parse_override(s) for s in sets or [])
-        diagram = load_diagram(path, overrides)
+        diagram = diagram_for_drawing(path, overrides)
         output = output or os.path.join(
             "out", os.path.splitext(os.path.basename(path))[0], "diagram.svg")
         used = draw_diagram(diagram, output, depth, engine)

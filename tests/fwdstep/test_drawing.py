@@ -113,3 +113,18 @@ def test_draw_refuses_a_directory(tmp_path):
     (tmp_path / "pic.svg").mkdir()
     with pytest.raises(fwdstep.OutputError):
         draw_diagram(d, str(tmp_path / "pic.svg"), engine="matplotlib")
+
+
+def test_a_subsystem_file_draws_with_its_ports_as_boxes(tmp_path):
+    from fwdstep.drawing import diagram_for_drawing, subsystem_ports
+    d = diagram_for_drawing("diagrams/lib/reference.yaml")       # does not compile alone
+    pic = build_picture(d)
+    subsystem_ports(pic, "diagrams/lib/reference.yaml", d)
+    assert pic.boxes["inputs"].outputs == ["q", "qdot", "q_d", "qdot_d", "qddot_d"]
+    assert pic.boxes["outputs"].inputs == ["z", "zdot", "s"]
+    edges = {e[:4] for e in pic.edges}
+    assert ("inputs", "q_d", "rd", "q_d") in edges and ("s", "y", "outputs", "s") in edges
+    out = tmp_path / "ref.png"
+    assert main(["graph", "diagrams/lib/reference.yaml", "-o", str(out),
+                 "--engine", "matplotlib"]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
