@@ -84,6 +84,7 @@ class Integrator(LinearBlock):
         "initial": Param("array", default=None, doc="initial value, broadcast to shape "
                          "(default 0)"),
     }
+    shape_from = {"shape": ("u", "y")}
     example = {"shape": [2], "initial": [1.0, -1.0]}
 
     def setup(self, shape, initial):
@@ -126,6 +127,7 @@ class TransferFunction(LinearBlock):
         "initial": Param("array", default=None, doc="initial observer-form state, broadcast "
                          "to (order, *shape) (default 0)"),
     }
+    shape_from = {"shape": ("u", "y")}
     example = {"num": [1.0, 2.0], "den": [1.0, 3.0, 2.0], "shape": [2]}
 
     def setup(self, num, den, shape, initial):

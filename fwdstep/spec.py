@@ -936,8 +936,12 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                 raise ConfigError("metrics.tail must be a fraction in (0, 1]", file=path,
                                   line=_line(metrics_raw, key))
             metrics["tail"] = v
-    return DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
+    spec = DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
                        input_ports=level.input_ports, signal_info=signal_info)
+    if not errors:
+        from .shapes import infer_shapes
+        infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/shapes.py)
+    return spec
