@@ -13,4 +13,6 @@ from . import robot  # noqa: F401,E402    TwoLinkArm, Regressor, PointMass, ...
 from . import adaptation  # noqa: F401,E402 AdaptationLaw
 from . import stacked  # noqa: F401,E402  FilterDerivatives, TransferFunctionSum, LinearCombination
 from . import urdf  # noqa: F401,E402     URDFArm, URDFRegressor (pinocchio imported lazily)
+from . import nonlinear  # noqa: F401,E402 Saturation, DeadZone, RateLimiter, Friction, Switch, Lookup1D
+from . import noise  # noqa: F401,E402     WhiteNoise
 from . import discrete  # noqa: F401,E402  ZeroOrderHold, UnitDelay, DiscreteStateSpace, ...
