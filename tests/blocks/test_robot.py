@@ -465,3 +465,123 @@ def test_n_link_arm_rejects_bad_parameters():
         NLinkRegressor("Y", lengths=[1.0, -1.0])
     with pytest.raises(ParameterError, match="limit"):
         NLinkArm("arm", lengths=np.ones(1000))
+
+
+# --------------------------------------------------------------------------- theta directly
+PAPER_THETA = [3.34, 0.97, 1.0392305, 0.6]
+
+
+def _derivative(arm, x, tau):
+    return arm.derivative(0.0, x, (tau, np.zeros_like(tau)))
+
+
+def test_two_link_arm_takes_theta_exactly_as_written_and_matches_the_physical_arm():
+    arm = TwoLinkArm("arm", theta=PAPER_THETA)
+    assert arm.p.theta[0].tolist() == PAPER_THETA + [0.0, 0.0, 0.0]       # no round trip
+    assert TwoLinkArm.parameter_vector(theta=PAPER_THETA).tolist() == PAPER_THETA
+    rng = np.random.default_rng(3)
+    x, tau = rng.normal(size=(1, 4)), rng.normal(size=(1, 2))
+    # the physical defaults' theta, given as theta: the same plant, bit for bit
+    for gravity in (0.0, 9.81):
+        physical = TwoLinkArm("arm", gravity=gravity)
+        full = TwoLinkArm.parameter_vector(gravity=gravity)
+        given = TwoLinkArm("arm", theta=full.tolist())
+        np.testing.assert_array_equal(_derivative(given, x, tau), _derivative(physical, x, tau))
+    # and the given theta is the plant's: H qddot + C qdot = tau with H, C from a1..a4
+    a1, a2, a3, a4 = PAPER_THETA
+    q2, (qd1, qd2) = x[0, 1], x[0, 2:]
+    c2, s2 = math.cos(q2), math.sin(q2)
+    H = np.array([[a1 + 2 * a3 * c2 + 2 * a4 * s2, a2 + a3 * c2 + a4 * s2],
+                  [a2 + a3 * c2 + a4 * s2, a2]])
+    hh = a3 * s2 - a4 * c2
+    C = np.array([[-hh * qd2, -hh * (qd1 + qd2)], [hh * qd1, 0.0]])
+    qddot = _derivative(arm, x, tau)[0, 2:]
+    np.testing.assert_allclose(H @ qddot + C @ x[0, 2:], tau[0], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"theta": PAPER_THETA, "m1": 2.0},
+     "block 'arm': give either 'theta' or the physical parameters, not both ('theta' and "
+     "'m1' are set)"),
+    ({"theta": PAPER_THETA, "gravity": 9.81},
+     "block 'arm': give either 'theta' or the physical parameters, not both ('theta' and "
+     "'gravity' are set)"),
+    ({"theta": [1, 2, 3]},
+     "block 'arm' parameter 'theta' must have 4 numbers [a1, a2, a3, a4]: horizontal arm, no "
+     "gravity columns; 7 numbers [a1, ..., a7]: a5..a7 carry the gravitational acceleration; "
+     "got shape (3,)"),
+    ({"theta": PAPER_THETA, "payload": 1.0},
+     "block 'arm': a 'payload' needs the physical parameters (me changes), not 'theta'"),
+    ({"theta": [1.0, 0.97, 1.04, 0.6]},
+     "block 'arm' parameters give an inertia matrix that is not positive definite for every "
+     "q2 (need a2 > 0 and a2 (a1 - a2) > a3^2 + a4^2: I1, Ie or lc1 > 0)"),
+])
+def test_two_link_theta_errors(params, message):
+    with pytest.raises(ParameterError) as info:
+        TwoLinkArm("arm", **params)
+    assert str(info.value) == message
+
+
+def test_n_link_arm_takes_theta_and_matches_the_physical_arm():
+    physical = dict(lengths=[1.0, 0.8, 0.5], masses=[2.0, 1.0, 0.5], com=[0.4, 0.3, 0.2],
+                    com_angle=[0.0, 20.0, -10.0], inertias=[0.15, 0.08, 0.03], gravity=9.81)
+    theta = NLinkArm.parameter_vector(**physical)
+    given = NLinkArm("arm", lengths=physical["lengths"], gravity=9.81, theta=theta)
+    assert NLinkArm.parameter_vector(lengths=physical["lengths"], theta=theta).tolist() \
+        == theta.tolist()
+    rng = np.random.default_rng(4)
+    x, tau = rng.normal(size=(1, 6)), rng.normal(size=(1, 3))
+    np.testing.assert_array_equal(_derivative(given, x, tau),
+                                  _derivative(NLinkArm("arm", **physical), x, tau))
+    with pytest.raises(ParameterError, match="not both"):
+        NLinkArm("arm", lengths=[1.0, 1.0], masses=2.0, theta=np.ones(8))
+    with pytest.raises(ParameterError, match="4 numbers per link"):
+        NLinkArm("arm", lengths=[1.0, 1.0], theta=np.ones(7))
+    with pytest.raises(ParameterError, match="negative inertia"):
+        NLinkArm("arm", lengths=[1.0, 1.0], theta=[1, 1, 0, 0.5, 1, 0, 0, 0.5])
+
+
+def test_a_regressor_without_the_plants_gravity_is_refused_at_load_time(tmp_path):
+    import textwrap
+
+    import fwdstep
+    from fwdstep.errors import WiringError
+    base = """\
+        blocks:
+          arm: {type: TwoLinkArm, gravity: 9.81}
+          Y: {type: Regressor%s}
+          tau: {type: Constant, value: [0, 0]}
+        connections:
+          - tau.y -> arm.tau
+          - arm.q -> Y.q
+          - arm.qdot -> Y.qdot, Y.zeta, Y.zetad
+        simulation: {t_final: 0.01, step: 0.001}
+        """
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(textwrap.dedent(base % ""))
+    with pytest.raises(WiringError) as info:
+        fwdstep.load_diagram(str(bad))
+    assert str(info.value) == (
+        f"{bad}:7: connection arm.q -> Y.q: the plant has gravity terms (a5..a7 != 0) but the "
+        "regressor has none (gravity: 0, p = 4: [a1, a2, a3, a4]: horizontal arm, no gravity "
+        "columns); give the Regressor the plant's gravity")
+    good = tmp_path / "good.yaml"
+    good.write_text(textwrap.dedent(base % ", gravity: 9.81"))
+    fwdstep.load_diagram(str(good))
+    nlink = tmp_path / "nlink.yaml"
+    nlink.write_text(textwrap.dedent("""\
+        blocks:
+          arm: {type: NLinkArm, lengths: [1, 0.5], gravity: 9.81}
+          Y: {type: NLinkRegressor, lengths: [1, 0.6], gravity: 9.81}
+          tau: {type: Constant, value: [0, 0]}
+        connections:
+          - tau.y -> arm.tau
+          - arm.q -> Y.q
+          - arm.qdot -> Y.qdot, Y.zeta, Y.zetad
+        simulation: {t_final: 0.01, step: 0.001}
+        """))
+    with pytest.raises(WiringError) as info:
+        fwdstep.load_diagram(str(nlink))
+    assert str(info.value) == (
+        f"{nlink}:7: connection arm.q -> Y.q: the regressor's lengths ([1.0, 0.6]) differ from "
+        "the plant's ([1.0, 0.5]); give both blocks the same lengths")
