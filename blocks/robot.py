@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from fwdstep import kernelops as ko
 from fwdstep.block import MAX_BLOCK_STATES, Block, Param, as_written
 from fwdstep.errors import ParameterError
 from fwdstep.registry import register
@@ -110,9 +111,181 @@ class MechanicalPlant(Block):
                                                   _vector_param(self, "qdot0", qdot0, n)]))
         self.state_labels = [f"q{i + 1}" for i in range(n)] + [f"qdot{i + 1}" for i in range(n)]
 
-    def output(self, t, x, u):
-        n = self._n
-        return x[:, :n], x[:, n:]
+
+
+# ---------------------------------------------------------------- kernels (one definition)
+def plant_state_outputs(x):
+    """q, qdot: the two halves of a plant's state."""
+    n = x.shape[1] // 2
+    return (x[:, :n], x[:, n:])
+
+
+def two_link_accel(a1, a2, a3, a4, a5, a6, a7, gravity, c1, c2, s2, c12, s12, qd1, qd2,
+                   t1, t2):
+    """qddot of the two-link arm (the equations in TwoLinkArm's docstring), on numbers or on
+    arrays of variants alike (c1 = cos q1, c2, s2 of q2, c12, s12 of q1 + q2):
+    H qddot = tau + tau_star - C qdot - g, solved in closed form."""
+    h12 = a2 + a3 * c2 + a4 * s2
+    h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
+    hh = a3 * s2 - a4 * c2
+    r1 = t1 + hh * (2.0 * qd1 + qd2) * qd2
+    r2 = t2 - hh * qd1 * qd1
+    if gravity:
+        g2 = a6 * c12 + a7 * s12
+        r1 = r1 - a5 * c1 - g2
+        r2 = r2 - g2
+    inv_det = 1.0 / (h11 * a2 - h12 * h12)
+    return (a2 * r1 - h12 * r2) * inv_det, (h11 * r2 - h12 * r1) * inv_det
+
+
+def two_link_output(t, x, tau, tau_star, theta, gravity):
+    return plant_state_outputs(x)
+
+
+def two_link_derivative(t, x, tau, tau_star, theta, gravity):
+    """dx = [qdot, qddot], one variant at a time on plain numbers (the fast form for a
+    single run and for compiled code)."""
+    B = max(x.shape[0], tau.shape[0], tau_star.shape[0], theta.shape[0])
+    dx = np.empty((B, 4))
+    for b in range(B):
+        bx = b if x.shape[0] > 1 else 0
+        bu = b if tau.shape[0] > 1 else 0
+        bs = b if tau_star.shape[0] > 1 else 0
+        bt = b if theta.shape[0] > 1 else 0
+        q1 = float(x[bx, 0])
+        q2 = float(x[bx, 1])
+        qd1 = float(x[bx, 2])
+        qd2 = float(x[bx, 3])
+        dd1, dd2 = two_link_accel(
+            float(theta[bt, 0]), float(theta[bt, 1]), float(theta[bt, 2]), float(theta[bt, 3]),
+            float(theta[bt, 4]), float(theta[bt, 5]), float(theta[bt, 6]), gravity,
+            math.cos(q1), math.cos(q2), math.sin(q2), math.cos(q1 + q2), math.sin(q1 + q2),
+            qd1, qd2, float(tau[bu, 0] + tau_star[bs, 0]), float(tau[bu, 1] + tau_star[bs, 1]))
+        dx[b, 0] = qd1
+        dx[b, 1] = qd2
+        dx[b, 2] = dd1
+        dx[b, 3] = dd2
+    return dx
+
+
+def two_link_derivative_batch(t, x, tau, tau_star, theta, gravity):
+    """The same on columns of variants (vectorised NumPy for batches)."""
+    torque = tau + tau_star
+    q1 = x[:, 0]
+    q2 = x[:, 1]
+    dd1, dd2 = two_link_accel(theta[:, 0], theta[:, 1], theta[:, 2], theta[:, 3], theta[:, 4],
+                              theta[:, 5], theta[:, 6], gravity, np.cos(q1), np.cos(q2),
+                              np.sin(q2), np.cos(q1 + q2), np.sin(q1 + q2), x[:, 2], x[:, 3],
+                              torque[:, 0], torque[:, 1])
+    B = max(x.shape[0], dd1.shape[0])
+    dx = np.empty((B, 4))
+    dx[:, 0] = x[:, 2]
+    dx[:, 1] = x[:, 3]
+    dx[:, 2] = dd1
+    dx[:, 3] = dd2
+    return dx
+
+
+def two_link_output_payload(t, x, tau, tau_star, theta, theta_after, payload_time, gravity):
+    return plant_state_outputs(x)
+
+
+def two_link_derivative_payload(t, x, tau, tau_star, theta, theta_after, payload_time,
+                                gravity):
+    """The same with a payload step: theta_after (link 2 with the payload) from payload_time
+    on, per variant."""
+    th = np.where(t >= payload_time, theta_after, theta)
+    return two_link_derivative_batch(t, x, tau, tau_star, th, gravity)
+
+
+def two_link_regressor_rows(c2, s2, qd1, qd2, z1, z2, zd1, zd2):
+    """The entries of Y (Regressor's docstring) on numbers or arrays (c2 = cos q2,
+    s2 = sin q2): row 1 and row 2 of the horizontal part; the gravity columns are cos q1,
+    cos q12, sin q12."""
+    v1 = qd2 * z1 + (qd1 + qd2) * z2                       # row-1 Coriolis factor
+    v2 = qd1 * z1                                          # row-2 Coriolis factor
+    w1 = 2.0 * zd1 + zd2
+    return (zd1, zd2, c2 * w1 - s2 * v1, s2 * w1 + c2 * v1,
+            zd1 + zd2, c2 * zd1 + s2 * v2, s2 * zd1 - c2 * v2)
+
+
+def regressor_output(t, x, q, qdot, zeta, zetad, p):
+    """Y (B, 2, p), one variant at a time on plain numbers."""
+    B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
+    Y = np.zeros((B, 2, p))
+    for b in range(B):
+        bq = b if q.shape[0] > 1 else 0
+        bd = b if qdot.shape[0] > 1 else 0
+        bz = b if zeta.shape[0] > 1 else 0
+        bzd = b if zetad.shape[0] > 1 else 0
+        q1 = float(q[bq, 0])
+        q2 = float(q[bq, 1])
+        r = two_link_regressor_rows(math.cos(q2), math.sin(q2), float(qdot[bd, 0]),
+                                    float(qdot[bd, 1]), float(zeta[bz, 0]), float(zeta[bz, 1]),
+                                    float(zetad[bzd, 0]), float(zetad[bzd, 1]))
+        Y[b, 0, 0] = r[0]
+        Y[b, 0, 1] = r[1]
+        Y[b, 0, 2] = r[2]
+        Y[b, 0, 3] = r[3]
+        Y[b, 1, 1] = r[4]
+        Y[b, 1, 2] = r[5]
+        Y[b, 1, 3] = r[6]
+        if p == 7:
+            c12 = math.cos(q1 + q2)
+            s12 = math.sin(q1 + q2)
+            Y[b, 0, 4] = math.cos(q1)
+            Y[b, 0, 5] = c12
+            Y[b, 1, 5] = c12
+            Y[b, 0, 6] = s12
+            Y[b, 1, 6] = s12
+    return (Y,)
+
+
+def regressor_output_batch(t, x, q, qdot, zeta, zetad, p):
+    """The same on columns of variants (vectorised NumPy for batches)."""
+    r = two_link_regressor_rows(np.cos(q[:, 1]), np.sin(q[:, 1]), qdot[:, 0], qdot[:, 1],
+                                zeta[:, 0],
+                                zeta[:, 1], zetad[:, 0], zetad[:, 1])
+    B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
+    Y = np.zeros((B, 2, p))
+    Y[:, 0, 0] = r[0]
+    Y[:, 0, 1] = r[1]
+    Y[:, 0, 2] = r[2]
+    Y[:, 0, 3] = r[3]
+    Y[:, 1, 1] = r[4]
+    Y[:, 1, 2] = r[5]
+    Y[:, 1, 3] = r[6]
+    if p == 7:
+        q12 = q[:, 0] + q[:, 1]
+        Y[:, 0, 4] = np.cos(q[:, 0])
+        Y[:, 0, 5] = np.cos(q12)
+        Y[:, 1, 5] = Y[:, 0, 5]
+        Y[:, 0, 6] = np.sin(q12)
+        Y[:, 1, 6] = Y[:, 0, 6]
+    return (Y,)
+
+
+def point_mass_output(t, x, tau, tau_star, inv_mass):
+    return plant_state_outputs(x)
+
+
+def point_mass_derivative(t, x, tau, tau_star, inv_mass):
+    """dx = [qdot, (tau + tau_star) / m]."""
+    n = x.shape[1] // 2
+    qddot = (tau + tau_star) * inv_mass
+    dx = np.empty((max(x.shape[0], qddot.shape[0]), 2 * n))
+    dx[:, :n] = x[:, n:]
+    dx[:, n:] = qddot
+    return dx
+
+
+def point_mass_regressor_output(t, x, q, qdot, zeta, zetad):
+    """Y = diag(zetad)."""
+    n = zetad.shape[1]
+    Y = np.zeros((zetad.shape[0], n, n))
+    for i in range(n):
+        Y[:, i, i] = zetad[:, i]
+    return (Y,)
 
 
 @register
@@ -235,82 +408,22 @@ class TwoLinkArm(MechanicalPlant):
         self.set_param("payload_time", [payload_time])
         self.finalize(1)
 
-
     def discontinuities(self, t_final: float) -> np.ndarray:
         """The payload time(s) of the variants that have a payload."""
         changed = np.any(self.p.theta_after != self.p.theta, axis=1)
         return np.unique(self.p.payload_time[changed, 0]) if np.any(changed) else np.zeros(0)
 
     def finalize(self, batch: int) -> None:
-        self._payload = bool(np.any(self.p.theta_after != self.p.theta))
-        theta = self.p.theta                      # (B, 7)
-        # gravity terms when any variant, before or after a payload, has them
-        both = np.concatenate([theta, self.p.theta_after])
-        self._a = [theta[:, k] for k in range(7)]  # each (B,)
-        self._gravity = bool(np.any(both[:, 4:] != 0.0))
-        # one variant: plain floats, for the scalar fast path of a single run
-        self._a_float = tuple(theta[0].tolist()) if theta.shape[0] == 1 else None
-
-    def derivative(self, t, x, u):
-        tau, tau_star = u
-        if self._payload:               # theta_after from payload_time on, per variant
-            theta = np.where(t >= self.p.payload_time, self.p.theta_after, self.p.theta)
-            return self._derivative_batch([theta[:, k] for k in range(7)], x, tau, tau_star)
-        if self._a_float is not None and x.shape[0] == 1 and tau.shape[0] == 1 \
-                and tau_star.shape[0] == 1:
-            return self._derivative_single(x, tau, tau_star)
-        return self._derivative_batch(self._a, x, tau, tau_star)
-
-    def _derivative_batch(self, a, x, tau, tau_star):
-        a1, a2, a3, a4, a5, a6, a7 = a
-        q1 = x[:, 0]
-        q2 = x[:, 1]
-        qd1 = x[:, 2]
-        qd2 = x[:, 3]
-        c2 = np.cos(q2)
-        s2 = np.sin(q2)
-        h12 = a2 + a3 * c2 + a4 * s2
-        h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
-        hh = a3 * s2 - a4 * c2
-        torque = tau + tau_star
-        # r = tau + tau_star - C qdot - g
-        r1 = torque[:, 0] + hh * (2.0 * qd1 + qd2) * qd2
-        r2 = torque[:, 1] - hh * qd1 * qd1
-        if self._gravity:
-            q12 = q1 + q2
-            g2 = a6 * np.cos(q12) + a7 * np.sin(q12)
-            r1 = r1 - a5 * np.cos(q1) - g2
-            r2 = r2 - g2
-        inv_det = 1.0 / (h11 * a2 - h12 * h12)
-        dx = np.empty((r1.shape[0], 4))
-        dx[:, 0] = qd1
-        dx[:, 1] = qd2
-        dx[:, 2] = (a2 * r1 - h12 * r2) * inv_det
-        dx[:, 3] = (h11 * r2 - h12 * r1) * inv_det
-        return dx
-
-    def _derivative_single(self, x, tau, tau_star):
-        """The same as ``derivative`` on Python floats (a single run is dominated by NumPy's
-        per-call overhead on length-1 arrays)."""
-        a1, a2, a3, a4, a5, a6, a7 = self._a_float
-        q1, q2, qd1, qd2 = x[0].tolist()
-        t1, t2 = tau[0].tolist()
-        ts1, ts2 = tau_star[0].tolist()
-        c2 = math.cos(q2)
-        s2 = math.sin(q2)
-        h12 = a2 + a3 * c2 + a4 * s2
-        h11 = a1 + 2.0 * a3 * c2 + 2.0 * a4 * s2
-        hh = a3 * s2 - a4 * c2
-        r1 = (t1 + ts1) + hh * (2.0 * qd1 + qd2) * qd2
-        r2 = (t2 + ts2) - hh * qd1 * qd1
-        if self._gravity:
-            q12 = q1 + q2
-            g2 = a6 * math.cos(q12) + a7 * math.sin(q12)
-            r1 = r1 - a5 * math.cos(q1) - g2
-            r2 = r2 - g2
-        inv_det = 1.0 / (h11 * a2 - h12 * h12)
-        return np.array([[qd1, qd2, (a2 * r1 - h12 * r2) * inv_det,
-                          (h11 * r2 - h12 * r1) * inv_det]])
+        gravity = bool(np.any(self.p.theta[:, 4:] != 0.0))
+        if np.any(self.p.theta_after != self.p.theta):
+            self.set_kernels(output=two_link_output_payload,
+                             derivative=two_link_derivative_payload,
+                             params=("theta", "theta_after", "payload_time"), static=(gravity,))
+            return
+        self.set_kernels(output=two_link_output,
+                         derivative=two_link_derivative if batch == 1
+                         else two_link_derivative_batch,
+                         params=("theta",), static=(gravity,))
 
 
 @register
@@ -354,6 +467,7 @@ class Regressor(Block):
         for name in ("q", "qdot", "zeta", "zetad"):
             self.declare_input(name, (2,))
         self.declare_output("Y", (2, self._p), feedthrough=("q", "qdot", "zeta", "zetad"))
+        self.finalize(1)
 
     def check_source(self, port, source, source_port):
         """At load time: a plant with gravity terms needs the gravity columns (p = 7); a
@@ -365,60 +479,9 @@ class Regressor(Block):
                     "plant's gravity")
         return None
 
-    def output(self, t, x, u):
-        q, qdot, zeta, zetad = u
-        batch = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
-        if batch == 1:
-            return (self._output_single(q, qdot, zeta, zetad),)
-        q2 = q[:, 1]
-        qd1 = qdot[:, 0]
-        z1 = zeta[:, 0]
-        z2 = zeta[:, 1]
-        zd1 = zetad[:, 0]
-        zd2 = zetad[:, 1]
-        c2 = np.cos(q2)
-        s2 = np.sin(q2)
-        v1 = qdot[:, 1] * z1 + (qd1 + qdot[:, 1]) * z2      # row-1 Coriolis factor
-        v2 = qd1 * z1                                       # row-2 Coriolis factor
-        w1 = 2.0 * zd1 + zd2
-        Y = np.zeros((batch, 2, self._p))
-        Y[:, 0, 0] = zd1
-        Y[:, 0, 1] = zd2
-        Y[:, 0, 2] = c2 * w1 - s2 * v1
-        Y[:, 0, 3] = s2 * w1 + c2 * v1
-        Y[:, 1, 1] = zd1 + zd2
-        Y[:, 1, 2] = c2 * zd1 + s2 * v2
-        Y[:, 1, 3] = s2 * zd1 - c2 * v2
-        if self._gravity:
-            q12 = q[:, 0] + q2
-            c12 = np.cos(q12)
-            s12 = np.sin(q12)
-            Y[:, 0, 4] = np.cos(q[:, 0])
-            Y[:, 0, 5] = c12
-            Y[:, 1, 5] = c12
-            Y[:, 0, 6] = s12
-            Y[:, 1, 6] = s12
-        return (Y,)
-
-    def _output_single(self, q, qdot, zeta, zetad):
-        """The same as ``output`` on Python floats, for a batch of one."""
-        q1, q2 = q[0].tolist()
-        qd1, qd2 = qdot[0].tolist()
-        z1, z2 = zeta[0].tolist()
-        zd1, zd2 = zetad[0].tolist()
-        c2 = math.cos(q2)
-        s2 = math.sin(q2)
-        v1 = qd2 * z1 + (qd1 + qd2) * z2
-        v2 = qd1 * z1
-        w1 = 2.0 * zd1 + zd2
-        row1 = [zd1, zd2, c2 * w1 - s2 * v1, s2 * w1 + c2 * v1]
-        row2 = [0.0, zd1 + zd2, c2 * zd1 + s2 * v2, s2 * zd1 - c2 * v2]
-        if self._gravity:
-            c12 = math.cos(q1 + q2)
-            s12 = math.sin(q1 + q2)
-            row1 += [math.cos(q1), c12, s12]
-            row2 += [0.0, c12, s12]
-        return np.array([[row1, row2]])
+    def finalize(self, batch: int) -> None:
+        self.set_kernels(output=regressor_output if batch == 1 else regressor_output_batch,
+                         static=(self._p,))
 
 
 @register
@@ -472,14 +535,8 @@ class PointMass(MechanicalPlant):
                                  f"got {np.asarray(mass).tolist()}", block=self.name)
         self.declare_plant(n, q0, qdot0)
         self.set_param("inv_mass", 1.0 / m)
-
-    def derivative(self, t, x, u):
-        n = self._n
-        qddot = (u[0] + u[1]) * self.p.inv_mass
-        dx = np.empty((max(x.shape[0], qddot.shape[0]), 2 * n))
-        dx[:, :n] = x[:, n:]
-        dx[:, n:] = qddot
-        return dx
+        self.set_kernels(output=point_mass_output, derivative=point_mass_derivative,
+                         params=("inv_mass",))
 
 
 @register
@@ -517,12 +574,7 @@ class PointMassRegressor(Block):
         self.declare_input("zeta", (n,), optional=True)
         self.declare_input("zetad", (n,))
         self.declare_output("Y", (n, n), feedthrough=("zetad",))
-
-    def output(self, t, x, u):
-        zetad = u[3]
-        Y = np.zeros((zetad.shape[0], self._n, self._n))
-        Y[:, self._diag, self._diag] = zetad
-        return (Y,)
+        self.set_kernels(output=point_mass_regressor_output)
 
 
 # --------------------------------------------------------------------------- n-link arm
@@ -603,9 +655,9 @@ def n_link_theta_given(block_name, theta, lengths, masses, com, com_angle, inert
 def _n_link_geometry(q, lengths, mask):
     """E_i = exp(j phi_i) with phi_i = q_1 + ... + q_i, and G[b, i, k] = O_i - O_k (joint
     origins as complex numbers) for k <= i, 0 above the diagonal (``mask`` [1, i, k])."""
-    E = np.exp(1j * np.cumsum(q, axis=1))                         # (B, n)
+    E = np.exp(1j * ko.cumsum1(q))                                 # (B, n)
     lE = lengths * E
-    O = np.cumsum(lE, axis=1) - lE                                 # O_1 = 0, O_2, ..., O_n
+    O = ko.cumsum1(lE) - lE                                        # O_1 = 0, O_2, ..., O_n
     G = (O[:, :, None] - O[:, None, :]) * mask                     # (B, i, k)
     return E, G
 
@@ -614,12 +666,12 @@ def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
     """Y (B, n, 4n): H zetad + C zeta + g = Y theta with C = sum_i m_i Jv_i^T Jv_i' (so
     Hdot - 2C is skew-symmetric), theta ordered per link [m, sx, sy, J] as n_link_theta;
     E, G from ``_n_link_geometry``."""
-    psi = np.cumsum(zeta, axis=1)
-    psid = np.cumsum(zetad, axis=1)
-    phid = np.cumsum(qdot, axis=1)
+    psi = ko.cumsum1(zeta)
+    psid = ko.cumsum1(zetad)
+    phid = ko.cumsum1(qdot)
     Q = E * (1j * psid - phid * psi)                       # joint-frame "acceleration" terms
     lQ = lengths * Q
-    A0 = np.cumsum(lQ, axis=1) - lQ                        # sum_{j<i} l_j Q_j
+    A0 = ko.cumsum1(lQ) - lQ                               # sum_{j<i} l_j Q_j
     Gc = np.conj(G)
     Y_m = np.imag(Gc * A0[:, :, None]) + gravity[:, None, None] * np.real(G)    # (B, i, k)
     X = np.conj(E) * A0                                                        # (B, i)
@@ -629,9 +681,60 @@ def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
     Y_sx = mask * (np.imag(X) + gcos)[:, :, None] + np.imag(Z)
     Y_sy = mask * (gsin * -1.0 - np.real(X))[:, :, None] + np.real(Z)
     Y_J = mask * psid[:, :, None]
-    Y = np.stack([Y_m, Y_sx, Y_sy, Y_J], axis=-1)          # (B, i, k, 4)
-    B, n = Y.shape[0], Y.shape[1]
-    return Y.transpose(0, 2, 1, 3).reshape(B, n, 4 * n)
+    B, n = Y_m.shape[0], Y_m.shape[1]
+    Y = np.empty((B, n, n, 4))                             # (B, k, i, 4)
+    Y[:, :, :, 0] = Y_m.transpose((0, 2, 1))
+    Y[:, :, :, 1] = Y_sx.transpose((0, 2, 1))
+    Y[:, :, :, 2] = Y_sy.transpose((0, 2, 1))
+    Y[:, :, :, 3] = Y_J.transpose((0, 2, 1))
+    return Y.reshape((B, n, 4 * n))
+
+
+def n_link_output(t, x, tau, tau_star, lengths, theta, gravity, J_cum, mask_ki, mask_ik):
+    return plant_state_outputs(x)
+
+
+def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, J_cum, mask_ki, mask_ik):
+    """dx = [qdot, H^-1 (tau + tau_star - C qdot - g)] with H, C, g of NLinkArm's docstring
+    (J_cum[b, k, l] = sum_{i >= max(k, l)} J_i; mask_ki[k, i] = (k <= i), mask_ik its
+    transpose)."""
+    n = x.shape[1] // 2
+    q = x[:, :n]
+    qdot = x[:, n:]
+    E, G = _n_link_geometry(q, lengths, mask_ik)
+    R = np.real(G)
+    I = np.imag(G)
+    th = np.ascontiguousarray(theta).reshape((theta.shape[0], n, 4))
+    m = th[:, :, 0]
+    # H = sum_i m_i (R_i^T R_i + I_i^T I_i) + the first-moment and inertia terms
+    H = ko.bmatmul(np.ascontiguousarray(R.transpose((0, 2, 1))) * m.reshape((m.shape[0], 1, n)),
+                   R)
+    H = H + ko.bmatmul(np.ascontiguousarray(I.transpose((0, 2, 1)))
+                       * m.reshape((m.shape[0], 1, n)), I)
+    sE_re = th[:, :, 1] * np.real(E) - th[:, :, 2] * np.imag(E)       # Re(s_i E_i)
+    sE_im = th[:, :, 1] * np.imag(E) + th[:, :, 2] * np.real(E)       # Im(s_i E_i)
+    B = R.shape[0]
+    cross = (sE_re.reshape((sE_re.shape[0], n, 1)) * R
+             + sE_im.reshape((sE_im.shape[0], n, 1)) * I)             # (B, i, l)
+    cross = ko.bmatmul(mask_ki, cross)
+    H = H + cross + np.ascontiguousarray(cross.transpose((0, 2, 1))) + J_cum
+    Y = _n_link_regressor(qdot, qdot, np.zeros_like(qdot), lengths, gravity, mask_ik, E, G)
+    bias = ko.bmatvec(Y, theta)                                       # C qdot + g
+    rhs = tau + tau_star - bias
+    dx = np.empty((B, 2 * n))
+    dx[:, :n] = qdot
+    dx[:, n:] = ko.bsolve(H, rhs)
+    return dx
+
+
+def n_link_regressor_output(t, x, q, qdot, zeta, zetad, lengths, gravity, mask_ik):
+    """Y (B, n, 4n) of NLinkRegressor."""
+    B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0], gravity.shape[0])
+    n = q.shape[1]
+    zero = np.zeros((B, n))
+    E, G = _n_link_geometry(q + zero, lengths, mask_ik)
+    return (_n_link_regressor(qdot + zero, zeta + zero, zetad + zero, lengths, gravity,
+                              mask_ik, E, G),)
 
 
 @register
@@ -710,36 +813,17 @@ class NLinkArm(MechanicalPlant):
         self.set_param("theta", theta)
         self.set_param("gravity", gravity)
         # sum_{i >= max(k, l)} J_i is added to H through this mask product
-        self._mask = np.triu(np.ones((n, n)))                     # [k, i] = (k <= i)
-        self._mask_ik = self._mask.T[None]                         # [., i, k]
+        # sum_{i >= max(k, l)} J_i is added to H through this mask product
+        self.set_param("mask_ki", np.triu(np.ones((n, n))))         # [k, i] = (k <= i)
+        self.set_param("mask_ik", np.tril(np.ones((n, n))))         # [i, k] = (k <= i)
         self.finalize(1)
 
     def finalize(self, batch: int) -> None:
         theta = self.p.theta.reshape(self.p.theta.shape[0], self._n, 4)
-        self._m = theta[:, :, 0]
-        self._s = theta[:, :, 1] + 1j * theta[:, :, 2]
-        self._J_cum = np.einsum("ki,li,bi->bkl", self._mask, self._mask, theta[:, :, 3])
-
-    def derivative(self, t, x, u):
-        n = self._n
-        q, qdot = x[:, :n], x[:, n:]
-        B = x.shape[0]
-        E, G = _n_link_geometry(q, self.p.lengths, self._mask_ik)
-        R, I = np.real(G), np.imag(G)
-        m = np.broadcast_to(self._m, (B, n))
-        H = np.einsum("bi,bik,bil->bkl", m, R, R) + np.einsum("bi,bik,bil->bkl", m, I, I)
-        sE = self._s * E                                           # (B, i)
-        cross = np.real(sE)[:, :, None] * R + np.imag(sE)[:, :, None] * I   # (B, i, l)
-        cross = np.einsum("ki,bil->bkl", self._mask, cross)
-        H = H + cross + cross.transpose(0, 2, 1) + self._J_cum
-        Y = _n_link_regressor(qdot, qdot, np.zeros_like(qdot), self.p.lengths,
-                              self.p.gravity, self._mask_ik, E, G)
-        bias = np.matmul(Y, self.p.theta[:, :, None])[:, :, 0]    # C qdot + g
-        rhs = u[0] + u[1] - bias
-        dx = np.empty((B, 2 * n))
-        dx[:, :n] = qdot
-        dx[:, n:] = np.linalg.solve(H, rhs[:, :, None])[:, :, 0]
-        return dx
+        mask = self.p.mask_ki[0]
+        self.p.J_cum = np.einsum("ki,li,bi->bkl", mask, mask, theta[:, :, 3])
+        self.set_kernels(output=n_link_output, derivative=n_link_derivative,
+                         params=("lengths", "theta", "gravity", "J_cum", "mask_ki", "mask_ik"))
 
 
 @register
@@ -779,7 +863,9 @@ class NLinkRegressor(Block):
         self.declare_output("Y", (n, 4 * n), feedthrough=("q", "qdot", "zeta", "zetad"))
         self.set_param("lengths", lengths)
         self.set_param("gravity", gravity)
-        self._mask_ik = np.tril(np.ones((n, n)))[None]             # [., i, k] = (k <= i)
+        self.set_param("mask_ik", np.tril(np.ones((n, n))))         # [i, k] = (k <= i)
+        self.set_kernels(output=n_link_regressor_output,
+                         params=("lengths", "gravity", "mask_ik"))
 
     def check_source(self, port, source, source_port):
         """At load time: the NLinkArm driving ``q`` must have these lengths and gravity."""
@@ -792,12 +878,3 @@ class NLinkRegressor(Block):
                 return (f"the regressor's {name} ({as_written(mine)}) {verb} from the plant's "
                         f"({as_written(theirs)}); give both blocks the same {name}")
         return None
-
-    def output(self, t, x, u):
-        q, qdot, zeta, zetad = u
-        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0], self.p.gravity.shape[0])
-        shape = (B, self._n)
-        E, G = _n_link_geometry(np.broadcast_to(q, shape), self.p.lengths, self._mask_ik)
-        return (_n_link_regressor(np.broadcast_to(qdot, shape), np.broadcast_to(zeta, shape),
-                                  np.broadcast_to(zetad, shape), self.p.lengths,
-                                  self.p.gravity, self._mask_ik, E, G),)
