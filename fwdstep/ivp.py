@@ -40,8 +40,9 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     docstring.  Raises like ``fwdstep.simulate`` (the error carries the partial Result)."""
     from scipy.integrate import solve_ivp
 
+    from .program import build_program
     from .simulate import (SimulationInterrupted, _block_error, _divergence_message, _finish,
-                           _make_evaluator, initial_state)
+                           initial_state)
 
     cfg = d.spec.simulation
     method = IVP_METHODS[cfg.solver]
@@ -53,17 +54,15 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     wall0 = _time.perf_counter()
 
     grid = [n * h for n in range(0, n_steps, every)] + [t_final]
-    t_log = np.empty(len(grid))
-    shapes = [tuple(s) for s in d.signal_shapes]
-    idx = [d.signal_index[name] for name in d.logged]
-    logs = [np.full((len(grid), B) + shapes[i], np.nan) for i in idx]
-
-    f_eval, outputs, sig = _make_evaluator(d)
     plan = plan_events(d, h, n_steps)
+    # the fixed-step path's generated stage code: f(t, x) is its stage 1 at an explicit time
+    prog = build_program(d, len(grid), sampled=tuple(plan.sampled_signals) if plan else (),
+                         solver="euler")
+    xn, k0 = prog.xn, prog.k[0]
     inner = [(t, ev) for t, ev in (plan.instants if plan else []) if 0 < t < t_final]
     start = plan.instants[0][1] if plan and plan.instants and plan.instants[0][0] == 0 else None
     end = plan.final if plan else None
-    # segments [a, b]: (a, b, lo, hi, updates at a)
+    # segments [a, b]: (a, b, lo, hi, event at a whose discrete blocks update there)
     bounds = [(0.0, start)] + inner + [(t_final, end)]
     segments = []
     for (a, ev_a), (b, ev_b) in zip(bounds[:-1], bounds[1:]):
@@ -71,38 +70,42 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
                          math.nextafter(ev_b.lo, -math.inf) if ev_b else math.inf,
                          ev_a if ev_a and ev_a.updates else None))
 
-    dx = np.empty((B, N))
     status, message, error = "ok", "", None
     alive = np.ones(B, dtype=bool)
     died_at = np.full(B, np.nan)
     row, steps, t = 0, 0, 0.0
-    x = np.empty((B, N))
-
-    def evaluate(tt):
-        outputs(tt, x)
-        return sig
+    x = np.empty((B, N))                       # the state; xn is the program's scratch
+    next_report = wall0 + 1.0
 
     def record(t_rec, ts, state):
         nonlocal row
-        outputs(ts, state)
-        t_log[row] = t_rec
-        for L, i in zip(logs, idx):
-            L[row] = sig[i]
+        xn[...] = state
+        prog.final_ts(t_rec, ts, row)
         row += 1
+
+    def update(event, ts):
+        xn[...] = x
+        apply_updates(event, ts, xn, prog.sample_signals)
+        x[...] = xn
 
     with np.errstate(all="ignore"):
         try:
             x[...] = (initial_state(d, event=plan.start if plan is not None else None)
                       if x0 is None else np.asarray(x0, dtype=float))
             g = 0                                  # next grid row to record
-            for a, b, lo, hi, updates in segments:
+            for a, b, lo, hi, event in segments:
                 t = a
-                if updates is not None:
-                    apply_updates(updates, max(a, lo), x, evaluate)
+                if event is not None:
+                    update(event, max(a, lo))
 
                 def rhs(tt, y, lo=lo, hi=hi):
-                    f_eval(min(max(tt, lo), hi), y.reshape(B, N), dx)
-                    return dx.reshape(-1).copy()
+                    nonlocal next_report
+                    xn[...] = y.reshape(B, N)
+                    prog.first_ts(min(max(tt, lo), hi))
+                    if progress is not None and _time.perf_counter() >= next_report:
+                        progress(min(tt / t_final, 1.0))
+                        next_report = _time.perf_counter() + 1.0
+                    return k0.reshape(-1).copy()
 
                 last = b >= t_final
                 t_eval = []
@@ -138,11 +141,9 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
                     died_at[:] = t
                     alive[:] = False
                     break
-                if progress is not None:
-                    progress(b / t_final)
             else:
                 if end is not None and end.updates:
-                    apply_updates(end, max(t_final, end.hi), x, evaluate)
+                    update(end, max(t_final, end.hi))
                 record(t_final, max(t_final, end.hi) if end else t_final, x)
         except KeyboardInterrupt:
             status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
@@ -154,7 +155,7 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
             error.__cause__ = exc
             status, message = "error", str(error)
     # _finish reports a divergence at its t + step: pass the time it happened minus a step
-    return _finish(d, t_log, logs, row, status, message, error, alive, died_at, x,
+    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
                    max(steps - 1, 0), t - h, wall0)
 
 

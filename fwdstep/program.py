@@ -56,6 +56,7 @@ class Program:
     final_ts: object = None
     rest_h: object = None
     sample_signals: object = None
+    k: np.ndarray | None = None    # the stage derivatives k_i, (s, B, N); first_ts fills k[0]
 
 
 class _Source:
@@ -76,13 +77,15 @@ class _Source:
         self.lines.append("    " * indent + text)
 
 
-def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple = ()) -> Program:
+def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple = (),
+                  solver: str | None = None) -> Program:
     """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows.
     ``alloc(shape)`` makes each log array (default: in memory, NaN-filled;
     ``fwdstep.budgets.disk_allocator`` streams the log to disk).  ``sampled``: the signal
-    indices ``sample_signals(ts)`` returns (inputs of discrete blocks, fwdstep.events)."""
+    indices ``sample_signals(ts)`` returns (inputs of discrete blocks, fwdstep.events).
+    ``solver``: the tableau, if not ``simulation.solver`` (fwdstep.ivp uses stage 1 only)."""
     cfg = d.spec.simulation
-    tab = TABLEAUX[cfg.solver]
+    tab = TABLEAUX[solver or cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
     B, N = d.batch, d.n_states
     S = tab.stages
@@ -266,7 +269,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                    first_record=ns["first_record"], rest=ns["rest"], final=ns["final"],
                    plan=plan, source=source, first_ts=ns["first_ts"],
                    first_record_ts=ns["first_record_ts"], final_ts=ns["final_ts"],
-                   rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"))
+                   rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"), k=K)
 
 
 class _GroupBuffers:
