@@ -361,6 +361,8 @@ def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "au
     if fmt not in FORMATS:
         raise OutputError(f"cannot draw to '{path}': the file name must end in "
                           f"{', '.join('.' + f for f in FORMATS)}")
+    if os.path.isdir(path):
+        raise OutputError(f"cannot write the picture to {path}: it is a directory")
     picture = build_picture(diagram, depth)
     if isinstance(diagram, _Unwired):
         subsystem_ports(picture, diagram.spec.file, diagram)
