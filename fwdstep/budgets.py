@@ -72,9 +72,10 @@ def check_log(d, limit: int | None = None, to_disk: str | None = None) -> int:
            (f" for {d.batch} variants" if d.batch > 1 else ""))
     if to_disk is not None:
         free = shutil.disk_usage(to_disk).free
+        where = os.path.dirname(os.path.abspath(to_disk))
         if 2 * size > free:
             raise ConfigError(f"the log needs {human(size)} ({how}) on disk, and the result "
-                              f"file as much again; {os.path.dirname(os.path.abspath(to_disk))} has "
+                              f"file as much again; {where} has "
                               f"{human(free)} free: log less (simulation.log_every, fewer "
                               "signals under log:) or choose another -o", file=d.file)
         return size

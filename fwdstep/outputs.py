@@ -21,8 +21,10 @@ What it promises:
   this run did not supersede (the user's files, earlier figures) is moved into the new
   directory (earlier fwdstep files stay in the manifest): at every instant the
   target holds either the complete old results or the complete new ones, never a new
-  ``summary.json`` beside an old ``result.npz``.  Leaving the ``with`` block without
-  ``commit()`` removes the staging directory.
+  ``summary.json`` beside an old ``result.npz``.  (The one exception: an existing directory
+  that is, or contains, the current directory is not renamed away under the user's shell;
+  there the files are moved in one by one, the manifest last.)  Leaving the ``with`` block
+  without ``commit()`` removes the staging directory.
 * **Never replaces what fwdstep did not write.**  An existing entry is fwdstep's when
   ``manifest.json`` lists it (or, for directories written before manifests existed, when it
   is a regular ``result.npz``/``summary.json``/``sweep.csv``).  ``force`` allows replacing
@@ -128,12 +130,6 @@ class OutputDir:
         if os.path.lexists(self.target) and not os.path.isdir(self.target):
             raise OutputError(f"output directory {printable(self.requested)} exists and is not "
                               "a directory")
-        cwd = os.path.realpath(os.getcwd())
-        if os.path.isdir(self.target) and (cwd == self.target or
-                                           cwd.startswith(self.target + os.sep)):
-            raise OutputError(f"output directory {printable(self.requested)} is (or contains) "
-                              "the current directory; fwdstep replaces an output directory as "
-                              "a whole, so choose another one with -o")
 
     def _recover(self) -> None:
         """Under the lock, leftovers of a writer that was killed (SIGKILL, power loss) are
@@ -236,12 +232,22 @@ class OutputDir:
             with open(os.path.join(self.dir, MANIFEST_FILE), "w") as fh:
                 json.dump({"written_by": "fwdstep", "files": files}, fh, indent=2)
             os.chmod(self.dir, 0o777 & ~_umask())
-            if exists:
+            if exists and _holds_cwd(self.target):
+                self._in_place(names)
+            elif exists:
                 self._swap(set(names))
             else:
                 os.rename(self.dir, self.target)
             self._committed = True
         return [os.path.join(self.requested, n) for n in names + [MANIFEST_FILE]]
+
+    def _in_place(self, names: list) -> None:
+        """The target is (or contains) the current directory, which must not be renamed
+        away under the user's shell: the new files are moved in one by one (each replacing
+        only fwdstep's own file, or nothing), the manifest last."""
+        for n in names + [MANIFEST_FILE]:
+            os.replace(os.path.join(self.dir, n), os.path.join(self.target, n))
+        os.rmdir(self.dir)
 
     def _swap(self, new: set) -> None:
         """Old directory aside, new one in place, then everything of the old directory
@@ -255,6 +261,14 @@ class OutputDir:
                 with contextlib.suppress(OSError):
                     os.rename(os.path.join(aside, entry), os.path.join(self.target, entry))
         shutil.rmtree(aside, ignore_errors=True)   # only superseded fwdstep files remain
+
+
+def _holds_cwd(path: str) -> bool:
+    try:
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:
+        return False
+    return cwd == path or cwd.startswith(path.rstrip(os.sep) + os.sep)
 
 
 def owned_files(directory: str) -> set:

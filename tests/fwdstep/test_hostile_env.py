@@ -17,7 +17,6 @@ import pytest
 
 import cli
 import fwdstep
-from fwdstep.errors import OutputError
 from fwdstep.outputs import MANIFEST_FILE, OutputDir, owned_files
 
 REPO = Path(__file__).resolve().parents[2]
@@ -175,13 +174,20 @@ def test_kill_between_the_renames_never_mixes_old_and_new(tmp_path, monkeypatch)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.yaml", "out"]
 
 
-def test_the_current_directory_is_not_swapped_away(tmp_path, capsys, monkeypatch):
+def test_the_current_directory_is_written_in_place_not_swapped_away(tmp_path, capsys,
+                                                                     monkeypatch):
     path = write(tmp_path, DIAGRAM)
-    monkeypatch.chdir(tmp_path)
-    assert cli.main(["run", path, "-o", ".", "-q", "--force"]) == 2
-    assert capsys.readouterr().err == (
-        "fwdstep: output directory . is (or contains) the current directory; fwdstep replaces "
-        "an output directory as a whole, so choose another one with -o\n")
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "notes.txt").write_text("mine")
+    monkeypatch.chdir(work)
+    inode = os.stat(".").st_ino
+    assert cli.main(["run", path, "-o", ".", "-q"]) == 0
+    assert cli.main(["run", path, "-o", ".", "-q", "--force"]) == 0
+    assert os.stat(".").st_ino == inode == work.stat().st_ino     # the same directory
+    assert listing(work) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
+                             "summary.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.yaml", "work"]
 
 
 # ------------------------------------------------------------------ signals
