@@ -418,7 +418,15 @@ def diagram_for_drawing(path: str, overrides: dict | None = None):
             raise
         from .graph import instantiate
         spec = load_spec(path, overrides)
-        return _Unwired(spec, instantiate(spec))
+        try:
+            from .shapes import infer_shapes
+            infer_shapes(spec)
+            return _Unwired(spec, instantiate(spec))
+        except (DiagramError, ImportError) as exc:
+            raise OutputError(f"{path} is a subsystem whose blocks take their shapes from the "
+                              f"diagram that uses it ({exc.__class__.__name__}: "
+                              f"{str(exc).split(': ', 1)[-1]}); draw a diagram that uses it"
+                              ) from None
 
 
 def subsystem_ports(picture: Picture, path: str, diagram) -> None:
