@@ -437,10 +437,23 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
             raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
                             line=exc.line, block=exc.block, port=exc.port) from None
         specs.append(spec)
-    metric = base.metrics.get("error")
     table = [Variant(i, values) for i, values in enumerate(all_values)]
-    if client is None and scheduler is not None:
+    own_client = client is None and scheduler is not None
+    if own_client:
         client = dask_client(scheduler)
+    try:
+        return _run_planned(path, names, all_values, specs, blocks, base, table, client,
+                            workers, sequential, max_memory, batch_size, outdir, resume,
+                            keep_signals, progress, wall0)
+    finally:
+        if own_client:
+            client.close()
+
+
+def _run_planned(path, names, all_values, specs, blocks, base, table, client, workers,
+                 sequential, max_memory, batch_size, outdir, resume, keep_signals, progress,
+                 wall0) -> SweepResult:
+    metric = base.metrics.get("error")
     if workers is None:
         workers = local_cores()
     concurrent = _client_workers(client) if client is not None else max(1, int(workers))
