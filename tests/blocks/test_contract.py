@@ -132,3 +132,61 @@ def test_unknown_parameter_is_refused(name):
     assert "no parameter 'no_such_parameter'" in msg
     for key in cls.params:
         assert key in msg
+
+
+# ---------------------------------------------------------------- one definition, two paths
+def _compiled_kernel_names():
+    """Blocks with kernels that may run compiled (linear blocks run compiled through their
+    LinearForm, fused; see tests/diagrams for those)."""
+    out = []
+    for name in NAMES:
+        blk = _make(name)
+        if blk.kernels is not None and not REGISTRY[name].cannot_compile:
+            out.append(name)
+    return out
+
+
+def test_every_block_can_run_compiled_or_says_why():
+    """No list of blocks with a kernel: each block declares kernels, is linear (fused from
+    its LinearForm) or names its reason."""
+    pytest.importorskip("numba")
+    from fwdstep import backend_numba
+    for name in NAMES:
+        blk = _make(name)
+        reason = backend_numba.refusal(blk)
+        assert reason is None or REGISTRY[name].cannot_compile == reason, (name, reason)
+
+
+@pytest.mark.slow            # jits every kernel (minutes on a loaded 2-core machine)
+@pytest.mark.parametrize("name", _compiled_kernel_names())
+def test_numpy_and_compiled_kernels_agree(name):
+    """The NumPy path (the kernel as a NumPy function) and the compiled path (the same
+    function jitted, called one variant at a time as the generated loop does) give the same
+    outputs and derivatives at random points, to 1e-12."""
+    pytest.importorskip("numba")
+    from fwdstep import backend_numba
+    rng = np.random.default_rng(3)
+    blk = _make(name)
+    k = blk.kernels
+    for trial in range(2):
+        u = tuple(np.ascontiguousarray(a) for a in _inputs(blk, 1, rng))
+        x = _state(blk, 1, rng)
+        t = float(rng.uniform(0.0, 2.0))
+        args = tuple(np.ascontiguousarray(a, dtype=float) if isinstance(a, np.ndarray) else a
+                     for a in blk.kernel_args())
+        ins = (u,) if k.tuple_inputs else u
+        if k.output is not None:
+            ref = blk.output(t, x, u)
+            got = backend_numba.jit_kernel(k.output)[0](t, x, *ins, *args)
+            if k.packed:
+                got = tuple(got[:, a:b].reshape((1,) + shape) for a, b, shape in blk._unpack)
+            assert len(got) == len(ref)
+            for g, r in zip(got, ref):
+                scale = max(1.0, float(np.max(np.abs(r)))) if np.size(r) else 1.0
+                np.testing.assert_allclose(np.asarray(g), np.broadcast_to(r, np.shape(g)),
+                                           rtol=0, atol=1e-12 * scale, err_msg=name)
+        if blk.n_states and k.derivative is not None:
+            ref = blk.derivative(t, x, u)
+            got = backend_numba.jit_kernel(k.derivative)[0](t, x, *ins, *args)
+            scale = max(1.0, float(np.max(np.abs(ref))))
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * scale, err_msg=name)
