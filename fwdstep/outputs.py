@@ -22,7 +22,8 @@ What it promises:
   directory (earlier fwdstep files stay in the manifest): at every instant the
   target holds either the complete old results or the complete new ones, never a new
   ``summary.json`` beside an old ``result.npz``.  (The one exception: an existing directory
-  that is, or contains, the current directory is not renamed away under the user's shell;
+  that is, or contains, the current directory is not renamed away under the user's shell,
+  and one whose parent the user cannot write holds its own lock and staging directory;
   there the files are moved in one by one, the manifest last.)  Leaving the ``with`` block
   without ``commit()`` removes the staging directory.
 * **Never replaces what fwdstep did not write.**  An existing entry is fwdstep's when
@@ -78,6 +79,9 @@ class OutputDir:
             self.target = os.path.realpath(self.target)
         self.parent = os.path.dirname(self.target)
         self.name = os.path.basename(self.target)
+        # where the lock and the staging directory live: beside the target, or inside it
+        # when only the target (not its parent) is writable (see ``_place``)
+        self.home, self.prefix, self.inside = self.parent, f".{self.name}.fwdstep-", False
         self.dir: str | None = None
         self._lock_fd: int | None = None
         self._committed = False
@@ -91,11 +95,12 @@ class OutputDir:
         except OSError as exc:
             raise OutputError(f"cannot create {printable(self.parent)}: "
                               f"{exc.strerror}") from None
+        self._place()
         self._lock()
         try:
             self._recover()
             self._check_existing()
-            self.dir = tempfile.mkdtemp(prefix=f".{self.name}.fwdstep-new-", dir=self.parent)
+            self.dir = tempfile.mkdtemp(prefix=f"{self.prefix}new-", dir=self.home)
         except BaseException:
             self._unlock()
             raise
@@ -117,6 +122,7 @@ class OutputDir:
         out = cls(outdir, force, expected)
         out._check_target()
         os.makedirs(out.parent, exist_ok=True)
+        out._place()
         out._lock()
         try:
             out._recover()
@@ -131,21 +137,28 @@ class OutputDir:
             raise OutputError(f"output directory {printable(self.requested)} exists and is not "
                               "a directory")
 
+    def _place(self) -> None:
+        """An existing, writable target in a directory the user cannot write to (a results
+        folder in a shared project): lock and stage inside it, commit file by file."""
+        if (os.path.isdir(self.target) and not os.access(self.parent, os.W_OK | os.X_OK)
+                and os.access(self.target, os.W_OK | os.X_OK)):
+            self.home, self.prefix, self.inside = self.target, ".fwdstep-", True
+
     def _recover(self) -> None:
         """Under the lock, leftovers of a writer that was killed (SIGKILL, power loss) are
         its own: a directory renamed aside with no new one in place is put back (the
         complete old results), and abandoned staging directories are removed."""
-        prefix = f".{self.name}.fwdstep-"
+        prefix = self.prefix
         try:
-            entries = sorted(os.listdir(self.parent))
+            entries = sorted(os.listdir(self.home))
         except OSError:
             return
         for entry in entries:
-            path = os.path.join(self.parent, entry)
+            path = os.path.join(self.home, entry)
             if not entry.startswith(prefix) or os.path.islink(path) or not os.path.isdir(path):
                 continue
             kind = entry[len(prefix):].split("-", 1)[0]
-            if kind == "old" and not os.path.lexists(self.target):
+            if kind == "old" and not self.inside and not os.path.lexists(self.target):
                 os.rename(path, self.target)
             elif kind in ("old", "new") and os.stat(path).st_uid == os.getuid():
                 shutil.rmtree(path, ignore_errors=True)
@@ -166,7 +179,7 @@ class OutputDir:
 
     # ------------------------------------------------------------------ lock
     def _lock_path(self) -> str:
-        return os.path.join(self.parent, f".{self.name}.fwdstep-lock")
+        return os.path.join(self.home, f"{self.prefix}lock")
 
     def _lock(self) -> None:
         path = self._lock_path()
@@ -232,7 +245,7 @@ class OutputDir:
             with open(os.path.join(self.dir, MANIFEST_FILE), "w") as fh:
                 json.dump({"written_by": "fwdstep", "files": files}, fh, indent=2)
             os.chmod(self.dir, 0o777 & ~_umask())
-            if exists and _holds_cwd(self.target):
+            if exists and (self.inside or _holds_cwd(self.target)):
                 self._in_place(names)
             elif exists:
                 self._swap(set(names))
@@ -243,8 +256,9 @@ class OutputDir:
 
     def _in_place(self, names: list) -> None:
         """The target is (or contains) the current directory, which must not be renamed
-        away under the user's shell: the new files are moved in one by one (each replacing
-        only fwdstep's own file, or nothing), the manifest last."""
+        away under the user's shell, or its parent is not writable: the new files are moved
+        in one by one (each replacing only fwdstep's own file, or nothing), the manifest
+        last."""
         for n in names + [MANIFEST_FILE]:
             os.replace(os.path.join(self.dir, n), os.path.join(self.target, n))
         os.rmdir(self.dir)

@@ -190,6 +190,23 @@ def test_the_current_directory_is_written_in_place_not_swapped_away(tmp_path, ca
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.yaml", "work"]
 
 
+def test_a_directory_whose_parent_is_not_writable_is_written_in_place(tmp_path, capsys,
+                                                                       monkeypatch):
+    from fwdstep import outputs
+    outdir = tmp_path / "shared" / "results"
+    outdir.mkdir(parents=True)
+    (outdir / "notes.txt").write_text("mine")
+    real_access = os.access
+    monkeypatch.setattr(outputs.os, "access", lambda p, mode: (
+        False if os.path.realpath(p) == str(outdir.parent) else real_access(p, mode)))
+    path = write(tmp_path, DIAGRAM)
+    for extra in ([], ["--force"]):
+        assert cli.main(["run", path, "-o", str(outdir), "-q", *extra]) == 0
+    assert listing(outdir.parent) == ["results"]              # nothing written beside it
+    assert listing(outdir) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
+                               "summary.json"]
+
+
 # ------------------------------------------------------------------ signals
 @pytest.mark.parametrize("signum, code, reason", [
     (signal.SIGTERM, 143, r"terminated \(SIGTERM\)"),
