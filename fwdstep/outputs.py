@@ -245,12 +245,20 @@ class OutputDir:
             with open(os.path.join(self.dir, MANIFEST_FILE), "w") as fh:
                 json.dump({"written_by": "fwdstep", "files": files}, fh, indent=2)
             os.chmod(self.dir, 0o777 & ~_umask())
-            if exists and (self.inside or _holds_cwd(self.target)):
-                self._in_place(names)
-            elif exists:
-                self._swap(set(names))
-            else:
-                os.rename(self.dir, self.target)
+            try:
+                if exists and (self.inside or _holds_cwd(self.target)):
+                    self._in_place(names)
+                elif exists:
+                    self._swap(set(names))
+                else:
+                    os.rename(self.dir, self.target)
+            except OSError as exc:                 # nothing computed is lost
+                if os.path.isdir(self.dir):
+                    self._keep = True
+                    raise OutputError(f"cannot move the results into "
+                                      f"{printable(self.requested)}: {exc.strerror or exc}; "
+                                      f"they are kept in {printable(self.dir)}") from None
+                raise
             self._committed = True
         return [os.path.join(self.requested, n) for n in names + [MANIFEST_FILE]]
 

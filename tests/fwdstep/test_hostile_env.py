@@ -460,3 +460,23 @@ def test_escape_sequences_in_a_file_name_are_shown_escaped(tmp_path, capsys, ver
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "\x1b" not in err and "\x07" not in err
     assert err.startswith(f"fwdstep: {tmp_path}/d\\x1b[2K\\x1b[1Gok\\x07.yaml:3: ")
+
+
+def test_a_failed_final_rename_keeps_the_results_and_says_where(tmp_path, capsys, monkeypatch):
+    outdir = tmp_path / "out"
+    real_rename = os.rename
+
+    def failing(src, dst):
+        if str(dst) == str(outdir):
+            raise OSError(28, "No space left on device")
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", failing)
+    assert cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q",
+                     "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    m = re.fullmatch(rf"fwdstep: cannot move the results into {re.escape(str(outdir))}: No "
+                     r"space left on device; they are kept in (\S+)\n", err)
+    assert m, err
+    kept = Path(m.group(1))
+    assert listing(kept) == ["manifest.json", "result.npz", "summary.json"]
