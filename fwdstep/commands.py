@@ -36,14 +36,6 @@ def default_outdir(path: str) -> str:
     return os.path.join("out", os.path.splitext(os.path.basename(path))[0])
 
 
-def check_outdir(outdir: str, force: bool) -> None:
-    """Refuse ``outdir`` before any work if results already exist there (kept for callers
-    that check early; ``OutputDir`` checks again, under its lock)."""
-    from .outputs import OutputDir
-    OutputDir(outdir, force, expected=[RESULT_FILE, SUMMARY_FILE])._check_target()
-    OutputDir(outdir, force, expected=[RESULT_FILE, SUMMARY_FILE])._check_existing()
-
-
 def run_files(d, plots: bool, formats=("png",)) -> list:
     """Names of the files ``fwdstep run`` writes for compiled diagram ``d``."""
     names = [RESULT_FILE, SUMMARY_FILE]
