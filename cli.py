@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sw = sub.add_parser("sweep", help="run a diagram over a grid of parameter values")
     sw.add_argument("diagram")
-    sw.add_argument("--grid", action="append", default=[], metavar="NAME=V1,V2,...")
+    sw.add_argument("--grid", action="append", default=[], metavar="NAME=V1,V2,...",
+                    help="values of NAME (a parameter, simulation.SETTING or BLOCK.PARAM); "
+                         "the variants are the product of all grids (docs/sweeps.md)")
     sw.add_argument("--random", action="append", default=[], metavar="NAME=DIST",
                     help="draw NAME: LOW:HIGH (uniform), loguniform:LOW:HIGH or "
                          "normal:MEAN:SD; needs --samples")
