@@ -40,6 +40,7 @@ class AdaptationLaw(Block):
         "gamma": Param("array", 1.0, "adaptation gain: scalar, (p,) diagonal or (p, p) SPD"),
         "theta0": Param("array", 0.0, "initial estimate: scalar or (p,)"),
     }
+    shape_from = {"regressor_shape": ("W",)}
     example = {"regressor_shape": [2, 4], "gamma": [[2.0, 0.5, 0, 0], [0.5, 1.0, 0, 0],
                                                     [0, 0, 1.0, 0], [0, 0, 0, 3.0]],
                "theta0": [1.0, 0.5, 0.2, 0.1]}

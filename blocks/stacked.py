@@ -80,6 +80,7 @@ class FilterDerivatives(LinearBlock):
         "initial": Param("array", default=None, doc="initial state, broadcast to "
                          "(*shape, deg den) (default 0)"),
     }
+    shape_from = {"shape": ("u",)}
     example = {"num": [1.0, 4.0, 4.0], "den": [1.0, 6.0, 15.0, 20.0, 15.0, 6.0, 1.0],
                "first": 0, "step": 2, "count": 3, "shape": [2]}
 
@@ -177,6 +178,7 @@ class TransferFunctionSum(LinearBlock):
         "initial": Param("array", default=None, doc="initial observer-form state, broadcast "
                          "to (order, *shape) (default 0)"),
     }
+    shape_from = {"shape": ("y", "y_d1", "y_d2", "u1", "u2")}
     example = {"den": [1.0, 3.0, 3.0, 1.0], "nums": [[2.0, 1.0, 1.0], [1.0]],
                "derivatives": 2, "input_derivatives": [1, 0], "shape": [2]}
 
@@ -284,6 +286,7 @@ class LinearCombination(Block):
         "fixed": Param("array", default=None, doc="constant weights appended after c"),
         "shape": Param("array", default=None, doc="shape of y, e.g. [2] or [2, 4]"),
     }
+    shape_from = {"shape": ("y",)}
     example = {"weights": [3], "fixed": [1.0], "shape": [2, 4]}
 
     def setup(self, weights, fixed, shape):

@@ -60,7 +60,9 @@ def block_schema(cls) -> dict:
         "type": "object",
         "description": cls.summary(),
         "properties": props,
-        "required": ["type"] + [k for k, d in cls.params.items() if d.required],
+        # a required shape the wiring can fix (shape_from) may be left out
+        "required": ["type"] + [k for k, d in cls.params.items()
+                                if d.required and k not in getattr(cls, "shape_from", {})],
         "additionalProperties": False,
     }
 
