@@ -234,9 +234,10 @@ class Sine(_SinusoidSum):
     """
 
     params = {
-        "amplitude": Param("array", doc="A (number, (n,) or (n, k))"),
-        "frequency": Param("array", doc="w [rad/s] (number, (n,) or (n, k))"),
-        "phase": Param("array", default=0.0, doc="phi [rad] (number, (n,) or (n, k))"),
+        "amplitude": Param("array", doc="A (number, (n,) or (n, k))", ragged=True),
+        "frequency": Param("array", doc="w [rad/s] (number, (n,) or (n, k))", ragged=True),
+        "phase": Param("array", default=0.0, doc="phi [rad] (number, (n,) or (n, k))",
+                       ragged=True),
         "offset": Param("array", default=0.0, doc="constant added per channel ((n,) or number)"),
         "derivatives": Param("int", default=0, doc="number of derivative outputs (0..8)"),
     }
@@ -412,7 +413,8 @@ class Polynomial(Block):
     """
 
     params = {
-        "coefficients": Param("array", doc="(n, d+1) ascending-power coefficients per channel"),
+        "coefficients": Param("array", doc="(n, d+1) ascending-power coefficients per channel",
+                              ragged=True),
         "derivatives": Param("int", default=0, doc="number of derivative outputs (0..8)"),
     }
     example = {"coefficients": [[0.0, 1.0, 0.5], [1.0, -0.5, 0.0]], "derivatives": 2}

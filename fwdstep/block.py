@@ -72,6 +72,9 @@ class Param:
     default: Any = REQUIRED
     doc: str = ""
     choices: tuple = ()
+    #: ``array`` only: a list of rows of different lengths is accepted and padded with zeros
+    #: at the end (per-channel coefficient or harmonic lists)
+    ragged: bool = False
 
     @property
     def required(self) -> bool:

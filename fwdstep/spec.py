@@ -212,6 +212,23 @@ def evaluate_value(value: Any, namespace: dict, what: str):
     return value
 
 
+def evaluate_ragged(value: Any, namespace: dict, what: str):
+    """A list of rows of different lengths -> a matrix padded with zeros at the end of each
+    row (``[[1, 0.5], [2]]`` -> ``[[1, 0.5], [2, 0]]``); anything else as ``evaluate_value``."""
+    if not (isinstance(value, list) and value and all(isinstance(v, list) for v in value)):
+        return evaluate_value(value, namespace, what)
+    rows = [np.atleast_1d(evaluate_value(v, namespace, what)) for v in value]
+    if any(r.ndim != 1 for r in rows):
+        raise ExpressionError(f"{what}: each row must be a list of numbers")
+    width = max(r.size for r in rows)
+    if width * len(rows) > MAX_ARRAY_SIZE:
+        raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
+    out = np.zeros((len(rows), width))
+    for i, r in enumerate(rows):
+        out[i, :r.size] = r
+    return out
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """``NAME=VALUE`` from the command line; VALUE is read as a YAML scalar/flow value."""
     if "=" not in text:
@@ -458,7 +475,8 @@ class _Level:
                 params[key] = value
             else:
                 try:
-                    params[key] = evaluate_value(value, self.ns, what)
+                    params[key] = (evaluate_ragged(value, self.ns, what) if decl.ragged else
+                                   evaluate_value(value, self.ns, what))
                     if not (isinstance(value, str) and value.strip() in self.ns):
                         self.budget.charge(params[key], what)    # a bare name shares its array
                 except DiagramError as exc:

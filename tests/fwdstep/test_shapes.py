@@ -146,3 +146,27 @@ def test_no_shipped_diagram_writes_a_shape_the_wiring_fixes():
                 if re.search(rf"[{{,]\s*{param}:", line):
                     found.append(f"{path.name}:{number}: {param}")
     assert found == []
+
+
+def test_per_channel_lists_may_differ_in_length(tmp_path):
+    """Polynomial coefficients and Sine harmonics per channel, without padding by hand."""
+    path = _write(tmp_path, """
+blocks:
+  p: {type: Polynomial, coefficients: [[1, 2, 3], [4]], derivatives: 1}
+  s: {type: Sine, amplitude: [[1, 0.5], [2]], frequency: [[1, 3], [2]], phase: [[0, 0.2], [1]]}
+simulation: {t_final: 1, step: 0.25}
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(path))
+    t = r.t
+    np.testing.assert_allclose(r["p.y"], np.stack([1 + 2 * t + 3 * t ** 2, 4 + 0 * t], 1),
+                               rtol=1e-14)
+    np.testing.assert_allclose(r["p.y_d1"], np.stack([2 + 6 * t, 0 * t], 1), rtol=1e-14)
+    np.testing.assert_allclose(r["s.y"], np.stack(
+        [np.sin(t) + 0.5 * np.sin(3 * t + 0.2), 2 * np.sin(2 * t + 1)], 1), rtol=1e-12,
+        atol=1e-15)
+    # a block parameter that is not per-channel still refuses a ragged list
+    bad = _write(tmp_path, "blocks:\n  c: {type: Constant, value: [[1, 2], [3]]}\n", "bad.yaml")
+    with pytest.raises(fwdstep.ExpressionError) as info:
+        load_spec(bad)
+    assert str(info.value) == (f"{bad}:2: block 'c' parameter 'value': the list is not a "
+                               "rectangular array of numbers")
