@@ -79,10 +79,10 @@ def test_a_cycle_in_a_long_chain_names_its_members(tmp_path):
 MANY_MISTAKES = """\
 blocks:
   src: {type: Constant, value: [1, 2]}
-  g: {type: Gainn, gain: 2}
+  g: {type: Gainn, gain: 2, shape: [3]}
   h: {type: Gain, gain: 2, shapee: [2]}
   i: {type: Integrator, shape: [2]}
-  j: {type: Gain, gain: 2}
+  j: {type: Gain, gain: 2, shape: [3]}
 connections:
   - src.y -> g.u
   - src.y -> i.u
@@ -113,9 +113,9 @@ def test_validate_reports_every_mistake_one_line_each(tmp_path, capsys):
     assert cli.main(["validate", str(path)]) == 2
     assert capsys.readouterr().err.splitlines() == [
         f"fwdstep: {path}:8: connection src.y -> g.u: shapes differ: src.y is (2,), g.u is "
-        "scalar ()",
+        "(3,)",
         f"fwdstep: {path}:10: connection src.y -> j.u: shapes differ: src.y is (2,), j.u is "
-        "scalar ()",
+        "(3,)",
         f"fwdstep: {path}:11: block 'i' has no output port 'yy'; output ports are: y"]
     # the run command still says only the first
     assert cli.main(["run", str(path), "-o", str(tmp_path / "out")]) == 2
