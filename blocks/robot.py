@@ -64,6 +64,8 @@ def _two_link_params():
 #: ``Regressor.check_source`` read it).
 TWO_LINK_FORMS = {
     4: "[a1, a2, a3, a4]: horizontal arm, no gravity columns",
+    5: "[a1, ..., a5]: gravity through a3, a4 and the known g / l1 (a6 = g a3 / l1, "
+       "a7 = g a4 / l1)",
     7: "[a1, ..., a7]: a5..a7 carry the gravitational acceleration",
 }
 
@@ -71,7 +73,9 @@ TWO_LINK_FORMS = {
 def two_link_theta_given(block_name: str, theta, physical: dict) -> np.ndarray:
     """The 7-vector [a1, ..., a7] from a ``theta`` parameter given in one of TWO_LINK_FORMS
     (4 numbers: a5..a7 = 0), refusing physical parameters given alongside it."""
-    changed = [k for k, v in physical.items() if v != TWO_LINK_DEFAULTS[k]]
+    size = np.size(theta)
+    known = ("gravity", "l1") if size == 5 else ()       # the 5-form's known kinematics
+    changed = [k for k, v in physical.items() if v != TWO_LINK_DEFAULTS[k] and k not in known]
     if changed:
         raise ParameterError(f"block {block_name!r}: give either 'theta' or the physical "
                              f"parameters, not both ('theta' and {changed[0]!r} are set)",
@@ -81,6 +85,12 @@ def two_link_theta_given(block_name: str, theta, physical: dict) -> np.ndarray:
         forms = "; ".join(f"{p} numbers {text}" for p, text in TWO_LINK_FORMS.items())
         raise ParameterError(f"block {block_name!r} parameter 'theta' must have {forms}; got "
                              f"shape {theta.shape}", block=block_name)
+    if theta.size == 5:
+        if physical["gravity"] == 0.0:
+            raise ParameterError(f"block {block_name!r}: a 5-number 'theta' ({TWO_LINK_FORMS[5]}) "
+                                 f"needs 'gravity' (and 'l1')", block=block_name)
+        g_over_l1 = physical["gravity"] / physical["l1"]
+        return np.concatenate([theta, [g_over_l1 * theta[2], g_over_l1 * theta[3]]])
     return np.concatenate([theta, np.zeros(7 - theta.size)])
 
 
@@ -265,6 +275,19 @@ def regressor_output_batch(t, x, q, qdot, zeta, zetad, p):
     return (Y,)
 
 
+def regressor5_output(t, x, q, qdot, zeta, zetad, g_over_l1):
+    """Y (B, 2, 5) of the 5-parameter form: the 7-column Y with the a6, a7 columns folded
+    into a3, a4 (a6 = g a3 / l1, a7 = g a4 / l1); g_over_l1 (B, 1) or (1, 1)."""
+    Y7 = regressor_output(t, x, q, qdot, zeta, zetad, 7)[0]
+    Y = np.empty((Y7.shape[0], 2, 5))
+    Y[:, :, 0] = Y7[:, :, 0]
+    Y[:, :, 1] = Y7[:, :, 1]
+    Y[:, :, 2] = Y7[:, :, 2] + g_over_l1 * Y7[:, :, 5]
+    Y[:, :, 3] = Y7[:, :, 3] + g_over_l1 * Y7[:, :, 6]
+    Y[:, :, 4] = Y7[:, :, 4]
+    return (Y,)
+
+
 def point_mass_output(t, x, tau, tau_star, inv_mass):
     return plant_state_outputs(x)
 
@@ -352,8 +375,12 @@ class TwoLinkArm(MechanicalPlant):
         a6 = me lce g cos(delta_e), a7 = me lce g sin(delta_e).  Missing keys take the
         block's defaults; q0 and qdot0 are accepted and ignored.  With ``theta`` given, that
         theta (4 or 7 numbers, as given)."""
+        if params.get("p") == 5:
+            rest = {k: v for k, v in params.items() if k != "p"}
+            return TwoLinkArm.parameter_vector(**rest)[:5]
         if params.get("theta") is not None:
-            physical = {k: float(v) for k, v in params.items() if k in TWO_LINK_DEFAULTS}
+            physical = dict(TWO_LINK_DEFAULTS)
+            physical.update({k: float(v) for k, v in params.items() if k in TWO_LINK_DEFAULTS})
             theta = two_link_theta_given("TwoLinkArm", params["theta"], physical)
             return theta[:np.asarray(params["theta"]).size]
         values = dict(TWO_LINK_DEFAULTS)
@@ -441,7 +468,10 @@ class Regressor(Block):
 
     (the last three columns only with gravity).  The gravitational acceleration g is inside
     a5..a7, so only whether ``gravity`` is zero matters here: give it the same value as the
-    plant's.
+    plant's.  ``p: 5`` is the 5-parameter form theta = [a1, ..., a5] for a known g and l1:
+    columns 3 and 4 gain (g / l1) cos q12 and (g / l1) sin q12 (a6 = g a3 / l1,
+    a7 = g a4 / l1), the last two columns go.  The forms are listed once in TWO_LINK_FORMS;
+    a plant whose gravity terms the form cannot express is refused when the diagram loads.
 
     Ports:
         | port  | direction | shape  | feedthrough            |
@@ -453,17 +483,32 @@ class Regressor(Block):
 
     Parameters:
         gravity: the plant's gravitational acceleration; 0 gives p = 4, anything else p = 7.
+        p: 5 for the 5-parameter form (needs gravity != 0 and l1); 0 (default): 4 or 7 as
+            above.
+        l1: length of link 1 (m), for p = 5.
     """
 
     params = {
         "gravity": Param("float", 0.0, "the plant's gravitational acceleration (0: p = 4, "
                                        "else p = 7)"),
+        "p": Param("int", 0, "5: the 5-parameter form [a1..a5] (needs gravity and l1); "
+                             "0: 4 or 7 from gravity"),
+        "l1": Param("float", 0.0, "length of link 1 (m), for p = 5"),
     }
     example = {"gravity": 9.81}
 
-    def setup(self, gravity):
+    def setup(self, gravity, p, l1):
         self._gravity = gravity != 0.0
         self._p = 7 if self._gravity else 4
+        if p not in (0, 5):
+            raise ParameterError(f"block {self.name!r} parameter 'p' must be 0 (4 or 7 from "
+                                 f"gravity) or 5, got {p}", block=self.name)
+        if p == 5:
+            if not self._gravity or l1 <= 0.0:
+                raise ParameterError(f"block {self.name!r}: p = 5 ({TWO_LINK_FORMS[5]}) needs "
+                                     f"gravity != 0 and l1 > 0", block=self.name)
+            self._p = 5
+            self.set_param("g_over_l1", [[gravity / l1]])
         for name in ("q", "qdot", "zeta", "zetad"):
             self.declare_input(name, (2,))
         self.declare_output("Y", (2, self._p), feedthrough=("q", "qdot", "zeta", "zetad"))
@@ -472,14 +517,24 @@ class Regressor(Block):
     def check_source(self, port, source, source_port):
         """At load time: a plant with gravity terms needs the gravity columns (p = 7); a
         horizontal plant with p = 7 is fine (a5..a7 = 0)."""
-        if port == "q" and isinstance(source, TwoLinkArm) and not self._gravity \
-                and np.any(source.p.theta[:, 4:] != 0.0):
+        if port != "q" or not isinstance(source, TwoLinkArm):
+            return None
+        if not self._gravity and np.any(source.p.theta[:, 4:] != 0.0):
             return ("the plant has gravity terms (a5..a7 != 0) but the regressor has none "
                     f"(gravity: 0, p = 4: {TWO_LINK_FORMS[4]}); give the Regressor the "
                     "plant's gravity")
+        if self._p == 5:
+            theta, k = source.p.theta[0], self.p.g_over_l1[0, 0, 0]
+            if not np.allclose(theta[5:], k * theta[2:4], rtol=1e-12, atol=1e-12):
+                return (f"the regressor's 5-parameter form needs a6 = (g/l1) a3 and "
+                        f"a7 = (g/l1) a4 with its g/l1 = {k:g}, the plant has a3..a7 = "
+                        f"{as_written(theta[2:])}; give both the same gravity and l1")
         return None
 
     def finalize(self, batch: int) -> None:
+        if self._p == 5:
+            self.set_kernels(output=regressor5_output, params=("g_over_l1",))
+            return
         self.set_kernels(output=regressor_output if batch == 1 else regressor_output_batch,
                          static=(self._p,))
 

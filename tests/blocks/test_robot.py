@@ -508,8 +508,9 @@ def test_two_link_arm_takes_theta_exactly_as_written_and_matches_the_physical_ar
      "'gravity' are set)"),
     ({"theta": [1, 2, 3]},
      "block 'arm' parameter 'theta' must have 4 numbers [a1, a2, a3, a4]: horizontal arm, no "
-     "gravity columns; 7 numbers [a1, ..., a7]: a5..a7 carry the gravitational acceleration; "
-     "got shape (3,)"),
+     "gravity columns; 5 numbers [a1, ..., a5]: gravity through a3, a4 and the known g / l1 "
+     "(a6 = g a3 / l1, a7 = g a4 / l1); 7 numbers [a1, ..., a7]: a5..a7 carry the "
+     "gravitational acceleration; got shape (3,)"),
     ({"theta": PAPER_THETA, "payload": 1.0},
      "block 'arm': a 'payload' needs the physical parameters (me changes), not 'theta'"),
     ({"theta": [1.0, 0.97, 1.04, 0.6]},
@@ -585,3 +586,32 @@ def test_a_regressor_without_the_plants_gravity_is_refused_at_load_time(tmp_path
     assert str(info.value) == (
         f"{nlink}:7: connection arm.q -> Y.q: the regressor's lengths ([1.0, 0.6]) differ from "
         "the plant's ([1.0, 0.5]); give both blocks the same lengths")
+
+
+def test_five_parameter_gravity_form_equals_the_seven_parameter_form():
+    """p = 5: a6 = (g/l1) a3, a7 = (g/l1) a4 folded into columns 3, 4 (TWO_LINK_FORMS)."""
+    prm = dict(OTHER_ARM, gravity=9.81)
+    theta7 = TwoLinkArm.parameter_vector(**prm)
+    theta5 = TwoLinkArm.parameter_vector(**prm, p=5)
+    assert theta5.tolist() == theta7[:5].tolist()
+    Y7 = Regressor("Y7", gravity=9.81)
+    Y5 = Regressor("Y5", gravity=9.81, p=5, l1=OTHER_ARM["l1"])
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        u = tuple(rng.normal(size=(1, 2)) for _ in range(4))
+        expected = Y7.output(0.0, None, u)[0][0] @ theta7
+        np.testing.assert_allclose(Y5.output(0.0, None, u)[0][0] @ theta5, expected,
+                                   rtol=1e-13, atol=1e-13)
+    # the plant from the five numbers is the physical plant (a6, a7 recomputed: round-off)
+    arm5 = TwoLinkArm("arm", theta=theta5.tolist(), gravity=9.81, l1=OTHER_ARM["l1"])
+    x, tau = rng.normal(size=(1, 4)), rng.normal(size=(1, 2))
+    np.testing.assert_allclose(_derivative(arm5, x, tau), _derivative(TwoLinkArm("arm", **prm),
+                                                                       x, tau), rtol=1e-13)
+    # a 5-form regressor with another l1 than the plant's is refused at load time
+    assert Y5.check_source("q", TwoLinkArm("arm", **prm), "q") is None
+    message = Y5.check_source("q", TwoLinkArm("arm", **dict(prm, l1=1.0)), "q")
+    assert message.startswith("the regressor's 5-parameter form needs a6 = (g/l1) a3")
+    with pytest.raises(ParameterError, match="needs gravity != 0 and l1 > 0"):
+        Regressor("Y", p=5, l1=1.0)
+    with pytest.raises(ParameterError, match="needs 'gravity'"):
+        TwoLinkArm("arm", theta=theta5.tolist())
