@@ -562,3 +562,68 @@ class PiecewiseConstant(Block):
 
     def discontinuities(self, t_final):
         return np.asarray(self.jumps)
+
+
+def piecewise_linear_output(t, x, times, values):
+    """y = values interpolated linearly in t between the breakpoints, held outside them."""
+    i = np.sum(times <= t, axis=1)                                   # (B,) or (1,)
+    n = max(i.shape[0], values.shape[0], times.shape[0])
+    m = times.shape[1]
+    out = np.empty((n,) + values.shape[2:])
+    for b in range(n):
+        k = i[min(b, i.shape[0] - 1)]
+        tb = times[min(b, times.shape[0] - 1)]
+        vb = values[min(b, values.shape[0] - 1)]
+        if k == 0:
+            out[b] = vb[0]
+        elif k == m:
+            out[b] = vb[m - 1]
+        else:
+            w = (t - tb[k - 1]) / (tb[k] - tb[k - 1])
+            out[b] = vb[k - 1] + w * (vb[k] - vb[k - 1])
+    return (out,)
+
+
+@register
+class PiecewiseLinear(Block):
+    """Piecewise-linear signal: a table of (time, value) points joined by straight lines.
+
+    Equation: y(t) = values[0] for t < times[0]; y(t) = values[i-1] + (t - times[i-1]) /
+    (times[i] - times[i-1]) (values[i] - values[i-1]) for times[i-1] <= t < times[i];
+    y(t) = values[m-1] for t >= times[m-1] (a ramp, a trapezoidal profile, a load that is
+    applied gradually).  Its kinks are declared as discontinuities (of the derivative), so a
+    fixed-step run integrates it exactly.
+
+    Ports:
+        | port | direction | shape                       | feedthrough |
+        | y    | out       | shape of one row of values  | -           |
+
+    Parameters:
+        times: the m breakpoints [s], strictly increasing (m >= 2).
+        values: m values (a list of numbers, or of equally shaped arrays).
+    """
+
+    params = {
+        "times": Param("array", doc="breakpoints [s], strictly increasing"),
+        "values": Param("array", doc="one value per breakpoint"),
+    }
+    example = {"times": [0.1, 0.25, 0.4], "values": [[0.0, 1.0], [2.0, -1.0], [0.5, 0.5]]}
+
+    def setup(self, times, values):
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        values = np.asarray(values, dtype=float)
+        if times.ndim != 1 or times.size < 2 or not np.all(np.diff(times) > 0):
+            raise ParameterError(f"block '{self.name}' parameter 'times' must be a strictly "
+                                 "increasing list of at least 2 times", block=self.name)
+        if values.ndim == 0 or values.shape[0] != times.size:
+            raise ParameterError(f"block '{self.name}' needs one value per time: "
+                                 f"{times.size} times, {values.shape[0] if values.ndim else 1} "
+                                 "values", block=self.name)
+        self.declare_output("y", values.shape[1:], feedthrough=())
+        self.set_param("times", times)
+        self.set_param("values", values)
+        self.set_kernels(output=piecewise_linear_output, params=("times", "values"))
+        self.jumps = tuple(times.tolist())   # outside p: never batched across other times
+
+    def discontinuities(self, t_final):
+        return np.asarray(self.jumps)

@@ -152,3 +152,18 @@ def test_compiled_backend_refuses_events_in_one_line(tmp_path):
         fwdstep.simulate(fwdstep.load_diagram(str(path)), backend="compiled")
     assert "backend 'compiled' does not yet handle discontinuity times" in str(err.value)
     assert "block 'src'" in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("times", [[0.1, 0.3, 0.7], [0.05, 0.333, 0.71, 0.9]])
+def test_piecewise_linear_integral_is_exact_and_values_interpolate(tmp_path, times):
+    """A ramp's kinks are declared: RK4 integrates each linear piece exactly, on the grid
+    or off it (without the kinks declared the error is O(h^2) per kink)."""
+    values = [0.5, -1.0, 2.0, 0.25][:len(times)]
+    r = _run(tmp_path, INTEGRAL.format(kind="PiecewiseLinear",
+                                       params=f"times: {times}, values: {values}",
+                                       solver="rk4"))
+    knots = np.array([0.0] + times + [1.0])
+    level = np.interp(knots, times, values)
+    exact = np.sum((level[1:] + level[:-1]) / 2 * np.diff(knots))   # the trapezoids are exact
+    assert abs(r["i.y"][-1] - exact) < 1e-12
+    np.testing.assert_allclose(r["src.y"], np.interp(r.t, times, values), rtol=0, atol=1e-15)
