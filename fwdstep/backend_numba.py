@@ -351,7 +351,8 @@ class CompiledProgram:
 
     def run(self, n0: int, n1: int, row: int) -> tuple:
         """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged, next step, next row)."""
-        return self.module.run_one(0, n0, n1, row, *self._fixed(), *self.args, *self.logs)
+        return self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
+                                   *self.logs)
 
     def run_batch(self, n0: int, n1: int, rows, status, n_next, alive) -> None:
         """Every alive variant, steps n0..n1-1, in parallel; updates rows/status/n_next."""
@@ -363,7 +364,10 @@ class CompiledProgram:
         compiled_cache.seal(self.module)
 
     def final(self, t: float, row: int, v: int = 0) -> None:
-        self.module.final_one(v, t, row, *self._fixed(), *self.args, *self.logs)
+        """Outputs at the final time (t = n_steps h) and their record, for variant v: the
+        first stage of run_one's loop, stopped after the record (no second copy of it)."""
+        n = int(round(t / self.consts["h"]))
+        self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args, *self.logs)
 
 
 def build_program(d, n_rows: int) -> CompiledProgram:
@@ -444,23 +448,22 @@ def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> s
         "for n in range(n0, n1):",
         "    t = n * h",
     ]
-    inner = body1 + ["if n % every == 0:", "    t_log[row] = t"]
-    inner += ["    " + r for r in record] + ["    row += 1"] + der1 + rest
+    inner = body1 + ["if n % every == 0 or final:", "    t_log[row] = t"]
+    inner += ["    " + r for r in record] + ["    row += 1", "if final:",
+                                                 "    return 0, n, row"] + der1 + rest
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
               "    if not (abs(w) <= bound):", "        bad = True",
               "if bad:", "    return 1, n + 1, row"]
     run_body += ["    " + line for line in inner]
     run_body.append("return 0, n1, row")
-    fn(f"def run_one(v, n0, n1, row, {fixed}{a_list}):", run_body)
+    fn(f"def run_one(v, n0, n1, row, final, {fixed}{a_list}):", run_body)
     fn(f"def run_all(n0, n1, rows, status, n_next, alive, {fixed}{a_list}):",
        ["for v in prange(rows.shape[0]):",
         "    if alive[v]:",
-        f"        st, nn, r = run_one(v, n0, n1, rows[v], {fixed}{a_list})",
+        f"        st, nn, r = run_one(v, n0, n1, rows[v], False, {fixed}{a_list})",
         "        status[v] = st", "        n_next[v] = nn", "        rows[v] = r",
         "        if st:", "            alive[v] = False"],
        "@njit(cache=CACHE, parallel=True)")
-    fin = picks + ["x1 = xn[v:v + 1]"] + st.outputs("x1", "t") + ["t_log[row] = t"] + record
-    fn(f"def final_one(v, t, row, {fixed}{a_list}):", fin)
     return "\n".join(out) + "\n"
 
 
