@@ -192,3 +192,18 @@ def test_batched_compiled_run_equals_one_by_one_runs(loop):
         for name in one.names:
             np.testing.assert_allclose(batch[name][:, b], one[name], rtol=0, atol=1e-12,
                                        err_msg=name)
+
+
+def test_a_sweep_over_ell_generates_one_program(monkeypatch):
+    """Sizes are run-time values: ell = 1..10 of Theorem 1 is one generated module (one
+    compile), not ten."""
+    import hashlib
+    from fwdstep import backend_numba
+    seen = []
+    monkeypatch.setattr(backend_numba.compiled_cache, "load",
+                        lambda source: seen.append(hashlib.sha256(source.encode()).digest()))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    for ell in range(1, 11):
+        d = fwdstep.load_diagram(os.path.join(root, "diagrams", "theorem1.yaml"), {"ell": ell})
+        backend_numba.build_program(d, 5)
+    assert len(seen) == 10 and len(set(seen)) == 1
