@@ -326,13 +326,19 @@ def figures(outdir, results, figdir):
     fig, ax = plt.subplots(figsize=(11, 4.8))
     width = 0.8 / len(controllers)
     for i, c in enumerate(controllers):
-        vals = [table.get((c, s), {}).get("rms_error", np.nan) for s in scenarios]
-        ax.bar(np.arange(len(scenarios)) + (i - (len(controllers) - 1) / 2) * width, vals,
-               width, label=c, color=colours[c])
+        runs = [table.get((c, s), {}) for s in scenarios]
+        vals = [r.get("rms_error", np.nan) if r.get("status") == "ok" else np.nan for r in runs]
+        x = np.arange(len(scenarios)) + (i - (len(controllers) - 1) / 2) * width
+        ax.bar(x, vals, width, label=c, color=colours[c])
+        for xi, r in zip(x, runs):
+            if r.get("status") == "diverged":
+                ax.text(xi, 0.02, "diverged", rotation=90, ha="center", va="bottom",
+                        fontsize=8, color=colours[c], transform=ax.get_xaxis_transform())
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(scenarios)), scenarios)
     ax.set_ylabel(r"RMS $|\Delta q|$ over t in [%g, %g] s [rad]" % WINDOW)
-    ax.set_title("Tracking error by scenario (lower is better; missing bar = diverged)")
+    ax.set_title("Tracking error by scenario (lower is better; no bar: diverged, or no "
+                 "vertical form of that controller)")
     ax.grid(True, axis="y", which="both", alpha=0.3)
     ax.legend(ncol=3, fontsize=9)
     fig.tight_layout()
