@@ -117,6 +117,13 @@ class AdaptationLaw(Block):
 
 
 # ---------------------------------------------------------------- kernels (one definition)
+def _like_state(dx, x):
+    """dx with the state's batch length (when only the state is batched)."""
+    if dx.shape[0] != x.shape[0]:
+        return dx + np.zeros_like(x)
+    return dx
+
+
 def adaptation_output(t, x, W, e, gamma):
     """theta_hat = x."""
     return (x,)
@@ -129,15 +136,14 @@ def adaptation_scalar_output(t, x, W, e, gamma):
 
 def adaptation_vector_derivative(t, x, W, e, gamma):
     """theta_hat' = -gamma W . e (one parameter: W is a vector)."""
-    dx = -gamma * np.sum(W * e, axis=1).reshape((-1, 1))
-    return dx + np.zeros_like(x)           # (B, 1) also when only the state is batched
+    return _like_state(-gamma * np.sum(W * e, axis=1).reshape((-1, 1)), x)
 
 
 def adaptation_derivative(t, x, W, e, gamma):
     """theta_hat' = -gamma_i (W^T e)_i (diagonal gain)."""
-    return -gamma * ko.bvecmat(e, W) + np.zeros_like(x)
+    return _like_state(-gamma * ko.bvecmat(e, W), x)
 
 
 def adaptation_matrix_derivative(t, x, W, e, gamma_T):
     """theta_hat' = -Gamma W^T e (symmetric positive definite gain)."""
-    return -ko.bvecmat(ko.bvecmat(e, W), gamma_T) + np.zeros_like(x)
+    return _like_state(-ko.bvecmat(ko.bvecmat(e, W), gamma_T), x)

@@ -34,10 +34,12 @@ def sum_output(t, x, u, signs):
 
 def _transposed(m, flag):
     """op(m) per variant: m^T[b] where flag[b] != 0 (flag (B,) or (1,))."""
+    if flag.shape[0] == 1:
+        if flag[0] != 0.0:
+            return np.ascontiguousarray(m.transpose((0, 2, 1)))
+        return np.ascontiguousarray(m)              # a no-op for a contiguous signal
     plain = np.ascontiguousarray(m)
     swapped = np.ascontiguousarray(m.transpose((0, 2, 1)))
-    if flag.shape[0] == 1:
-        return swapped if flag[0] != 0.0 else plain
     out = np.empty((max(m.shape[0], flag.shape[0]),) + swapped.shape[1:])
     for b in range(out.shape[0]):
         out[b] = swapped[b if m.shape[0] > 1 else 0] if flag[b] != 0.0 else \

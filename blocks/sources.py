@@ -47,25 +47,22 @@ def step_output(t, x, time, after, before):
     return (np.where(t >= time, after, before),)
 
 
-def sinusoid_output(t, x, frequency, phase, offset, even_coef, odd_coef, m):
-    """Packed [y, y', ..., y^(m)]: y^(j)_i = [j = 0] offset_i + sum_k coef_jik
-    (sin if j even else cos)(w_ik t + phi_ik), the signs of d^j/dt^j folded into coef
-    (even orders in ``even_coef``, odd orders in ``odd_coef``, each (B, orders, N, K))."""
+def sinusoid_output(t, x, frequency, phase, coef_sin, coef_cos, offset_full):
+    """Packed [y, y', ..., y^(m)]: y^(j)_i = [j = 0] offset_i + sum_k (coef_sin[j, i, k]
+    sin + coef_cos[j, i, k] cos)(w_ik t + phi_ik); the signs and powers of w of d^j/dt^j are
+    folded into the coefficients (sin at even orders, cos at odd orders)."""
     arg = frequency * t + phase                                   # (B, N, K)
     s = np.sin(arg)
     c = np.cos(arg)
-    n = arg.shape[1]
-    B = max(arg.shape[0], even_coef.shape[0], offset.shape[0])
-    Y = np.empty((B, (m + 1) * n))
-    for j in range(m + 1):
-        if j % 2 == 0:
-            v = np.sum(even_coef[:, j // 2] * s, axis=2)
-        else:
-            v = np.sum(odd_coef[:, j // 2] * c, axis=2)
-        if j == 0:
-            v = v + offset
-        Y[:, j * n:(j + 1) * n] = v
-    return Y
+    if arg.shape[2] == 1:                                         # one sinusoid per channel
+        y = coef_sin[:, :, :, 0] * s.reshape((s.shape[0], 1, s.shape[1])) \
+            + coef_cos[:, :, :, 0] * c.reshape((c.shape[0], 1, c.shape[1]))
+    else:
+        n, k = s.shape[1], s.shape[2]
+        y = np.sum(coef_sin * s.reshape((s.shape[0], 1, n, k))
+                   + coef_cos * c.reshape((c.shape[0], 1, n, k)), axis=3)
+    y = y + offset_full                                           # (B, m+1, N)
+    return y.reshape((y.shape[0], y.shape[1] * y.shape[2]))
 
 
 def polynomial_output(t, x, coef):
@@ -176,13 +173,20 @@ class _SinusoidSum(Block):
         self.set_param("offset", offset)
         self.set_param("even_coef", coef[0::2])
         self.set_param("odd_coef", coef[1::2])
+        # the same per order: sin coefficients (0 at odd orders), cos coefficients (0 at even
+        # orders), the offset at order 0 only, so one kernel call is ~8 array operations
+        self.set_param("coef_sin", np.where((orders % 2 == 0)[:, None, None], coef, 0.0))
+        self.set_param("coef_cos", np.where((orders % 2 == 1)[:, None, None], coef, 0.0))
+        offset_full = np.zeros((m + 1, n_channels))
+        offset_full[0] = offset
+        self.set_param("offset_full", offset_full)
         self._m = m
         self._scalar = scalar
         shape = () if scalar else (n_channels,)
         for name in _derivative_names(m):
             self.declare_output(name, shape, feedthrough=())
-        self.set_kernels(output=sinusoid_output, packed=True, static=(m,),
-                         params=("frequency", "phase", "offset", "even_coef", "odd_coef"))
+        self.set_kernels(output=sinusoid_output, packed=True,
+                         params=("frequency", "phase", "coef_sin", "coef_cos", "offset_full"))
 
 
 def _per_channel(block: Block, key: str, value) -> np.ndarray:

@@ -226,13 +226,21 @@ class Block:
             self._unpack = []
             c = 0
             for port in self.outputs.values():
-                self._unpack.append((c, c + port.size, port.shape))
+                # a vector output is the column slice itself (a view, no reshape)
+                self._unpack.append((c, c + port.size, None if len(port.shape) == 1
+                                     else port.shape))
                 c += port.size
 
     def kernel_args(self) -> tuple:
-        """The arguments after the inputs: the named ``p`` arrays, then the static values."""
+        """The arguments after the inputs: the named ``p`` arrays, then the static values
+        (built once per parameter namespace: a batch stacks ``p`` anew, then finalizes)."""
+        cached = self.__dict__.get("_kargs")
+        if cached is not None and cached[0] is self.p and cached[1] is self.kernels:
+            return cached[2]
         k = self.kernels
-        return tuple(getattr(self.p, n) for n in k.params) + k.static
+        args = tuple(getattr(self.p, n) for n in k.params) + k.static
+        self._kargs = (self.p, k, args)
+        return args
 
     def feedthrough(self, output: str) -> tuple:
         ft = self._feedthrough[output]
@@ -246,7 +254,7 @@ class Block:
         y = (k.output(t, x, u, *self.kernel_args()) if k.tuple_inputs
              else k.output(t, x, *u, *self.kernel_args()))
         if k.packed:
-            return tuple(y[:, a:b].reshape((y.shape[0],) + shape)
+            return tuple(y[:, a:b] if shape is None else y[:, a:b].reshape((y.shape[0],) + shape)
                          for a, b, shape in self._unpack)
         return y
 

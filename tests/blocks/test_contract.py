@@ -179,7 +179,8 @@ def test_numpy_and_compiled_kernels_agree(name):
             ref = blk.output(t, x, u)
             got = backend_numba.jit_kernel(k.output)[0](t, x, *ins, *args)
             if k.packed:
-                got = tuple(got[:, a:b].reshape((1,) + shape) for a, b, shape in blk._unpack)
+                got = tuple(got[:, a:b] if shape is None else
+                            got[:, a:b].reshape((1,) + shape) for a, b, shape in blk._unpack)
             assert len(got) == len(ref)
             for g, r in zip(got, ref):
                 scale = max(1.0, float(np.max(np.abs(r)))) if np.size(r) else 1.0
