@@ -101,6 +101,7 @@ class ZeroOrderHold(_Sampled):
     params = {**SAMPLING,
               "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar"),
               "initial": Param("array", default=None, doc="output before the first sample")}
+    shape_from = {"shape": ("u", "y")}          # may be left out: the wiring fixes it
     example = {"period": 0.01, "shape": [2], "initial": [0.5, -0.5]}
 
     def setup(self, period, offset, shape, initial):
@@ -140,6 +141,7 @@ class UnitDelay(_Sampled):
     params = {**SAMPLING,
               "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar"),
               "initial": Param("array", default=None, doc="output until the second sample")}
+    shape_from = {"shape": ("u", "y")}          # may be left out: the wiring fixes it
     example = {"period": 0.01, "shape": [3], "initial": 1.0}
 
     def setup(self, period, offset, shape, initial):
@@ -248,6 +250,7 @@ class DiscreteTransferFunction(DiscreteStateSpace):
               "den": Param("array", doc="denominator in z, highest power first"),
               **SAMPLING,
               "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar")}
+    shape_from = {"shape": ("u", "y")}          # may be left out: the wiring fixes it
     example = {"num": [0.2, 0.1], "den": [1.0, -0.7], "period": 0.01, "shape": [2]}
 
     def setup(self, num, den, period, offset, shape):

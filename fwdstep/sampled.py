@@ -41,26 +41,21 @@ def sample_subsystem(level, name: str, body, file: str, line) -> None:
     hold = lookup("ZeroOrderHold")
     entries = {b.name: b for b in level.blocks}
 
-    def port_shape(blk: str, port: str, direction: str) -> list:
-        entry = entries[blk]
-        ports = getattr(entry.cls(entry.name, **entry.params), direction)
-        return list(ports[port].shape)
-
-    def add_hold(hname: str, shape: list) -> None:
+    def add_hold(hname: str) -> None:
+        """A ZeroOrderHold whose shape the wiring fixes (fwdstep.shapes)."""
         if hname in entries:
             raise ConfigError(f"subsystem '{full}' has a block named '{hname.rsplit('/', 1)[1]}'"
                               f", the name of its sample-and-hold; rename that block",
                               file=file, line=line)
         level.budget.add_block(hname, file, line)
-        level.blocks.append(BlockEntry(hname, "ZeroOrderHold", hold,
-                                       {**values, "shape": shape}, file, line))
+        level.blocks.append(BlockEntry(hname, "ZeroOrderHold", hold, dict(values), file, line))
         entries[hname] = level.blocks[-1]
 
     for pname, targets in level.sub_inputs[name].items():
         if not targets:
             continue
         hname = f"{full}/sample_{pname}"
-        add_hold(hname, port_shape(*targets[0], "inputs"))
+        add_hold(hname)
         for target in targets:
             level.connections.append(Connection((hname, "y"), target, file, line,
                                                 f"{full}.{pname} (sampled)"))
@@ -68,7 +63,7 @@ def sample_subsystem(level, name: str, body, file: str, line) -> None:
         level.input_ports[(hname, "u")] = (f"{full}.{pname}", file, line)
     for pname, src in level.sub_outputs[name].items():
         hname = f"{full}/hold_{pname}"
-        add_hold(hname, port_shape(*src, "outputs"))
+        add_hold(hname)
         level.connections.append(Connection(src, (hname, "u"), file, line,
                                             f"{full}.{pname} (held)"))
         level.sub_outputs[name][pname] = (hname, "y")

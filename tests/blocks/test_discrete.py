@@ -325,3 +325,19 @@ def test_states_initialised_from_inputs_see_the_samples_of_t0(tmp_path):
     np.testing.assert_array_equal(x_held[:, zoh], 0.0)      # updated by the run, once
     r = fwdstep.simulate(held)
     np.testing.assert_array_equal(r["zoh.y"][0], [0.3, -0.2])
+
+
+def test_a_shipped_controller_subsystem_samples_signals_of_every_shape(tmp_path):
+    """The holds take their shapes from the wiring (vectors and the (2, 4) regressor)."""
+    import pathlib
+    text = pathlib.Path("diagrams/slotine_li_disturbed.yaml").read_text().replace(
+        "file: lib/torque_passive.yaml,", "file: lib/torque_passive.yaml, sample_period: 0.01,")
+    path = tmp_path / "sampled.yaml"
+    path.write_text(text)            # lib/ is found in the shipped library
+    d = fwdstep.load_diagram(str(path), overrides={"simulation.t_final": 0.05})
+    shapes = {b.name: b.inputs["u"].shape for b in d.blocks if b.type_name == "ZeroOrderHold"}
+    assert shapes["tq/sample_Y"] == (2, 4) and shapes["tq/hold_tau"] == (2,)
+    r = fwdstep.simulate(d)
+    k = np.floor(r.t / 0.01 + 1e-9)
+    changed = np.any(np.diff(r["tq.tau"], axis=0) != 0, axis=1)
+    np.testing.assert_array_equal(changed, np.diff(k) != 0)     # held between samples
