@@ -165,7 +165,7 @@ def main(argv=None) -> int:
           f"medians of {args.repeats}; max |e - e_hand|: NumPy path "
           f"{np.max(np.abs(e_np - e_hand[:len(e_np)])):.1e}, compiled "
           f"{np.max(np.abs(e_cp - e_hand[:len(e_cp)])):.1e}, floor "
-          f"{np.max(np.abs(outs['numba scalar floor'][1] - e_hand)):.1e}")
+          f"{np.max(np.abs(outs['numba scalar floor'][1] - e_hand[:len(outs['numba scalar floor'][1])])):.1e}")
     ref, flo = med["hand NumPy loop"], med["numba scalar floor"]
     for name in fns:
         print(f"  {name:26s} cpu {med[name]:8.4f} s   / hand {med[name] / ref:7.4f}   "
