@@ -124,6 +124,9 @@ class WhiteNoise(Block):
         self.set_param("sigma", np.broadcast_to(np.sqrt(psd / sample_time), (n,)))
         self.set_param("mean", np.broadcast_to(mean, (n,)))
         self.set_param("sample_time", [sample_time])                 # (1, 1)
+        # the sample instants are discontinuity times: kept outside p as well, so variants with
+        # another Ts never share a batch (one batch, one step grid; fwdstep.block.discontinuities)
+        self.hold_interval = float(sample_time)
         self.set_param("channel", np.arange(n, dtype=float))
         self.set_kernels(output=white_noise_output,
                          params=("seed", "sigma", "mean", "sample_time", "channel"))
@@ -134,7 +137,7 @@ class WhiteNoise(Block):
         if not np.any(self.p.sigma):
             return np.zeros(0)
         out = []
-        for ts in np.unique(self.p.sample_time):
+        for ts in (self.hold_interval,):
             count = math.floor(t_final / ts + 1e-9) + 1
             if count > MAX_SAMPLES:
                 raise ParameterError(

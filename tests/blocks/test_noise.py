@@ -198,3 +198,28 @@ def test_shipped_measurement_noise_variant_without_noise_is_the_original_diagram
     w = noisy["w_q.y"]
     assert np.std(w) == pytest.approx(math.sqrt(1e-8 / 1e-3), rel=0.25)
     assert 0 < np.max(np.abs(noisy["e.y"] - plain["e.y"])) < 0.01   # felt, not dominant
+
+
+def test_a_sweep_over_the_hold_interval_equals_its_one_by_one_runs(tmp_path):
+    """Variants with another Ts have other sample instants (discontinuity times): they must never
+    share a batch, whose step grid would then be the union of both (differences ~1e-8)."""
+    path = tmp_path / "ts.yaml"
+    path.write_text("""
+description: filtered noise, swept over the hold interval
+parameters: {ts: 0.01}
+blocks:
+  w: {type: WhiteNoise, n: 1, psd: 1.0, sample_time: ts, seed: 3}
+  f: {type: TransferFunction, num: [1], den: [1, 1]}
+connections:
+  - w.y -> f.u
+simulation: {t_final: 0.5, step: 0.004, solver: rk4}
+log: [f.y]
+metrics: {error: f.y}
+""")
+    grid = {"ts": [0.01, 0.03, 0.07]}
+    batched = run_sweep(str(path), grid, workers=1)
+    alone = run_sweep(str(path), grid, workers=1, sequential=True)
+    for a, b in zip(sorted(batched.variants, key=lambda v: v.index),
+                    sorted(alone.variants, key=lambda v: v.index)):
+        assert a.values == b.values
+        assert a.metrics["final_abs_error"] == b.metrics["final_abs_error"]
