@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     ap.add_argument("--load", help="redraw the figure and table from a --save file")
     args = ap.parse_args(argv)
 
-    from blocks.robot import TwoLinkArm
+    from fwdstep.blocks.robot import TwoLinkArm
     theta_true = TwoLinkArm.parameter_vector()
     common = {"t_final": args.t_final}
     if args.dist_frequency is not None:

@@ -41,7 +41,7 @@ sys.path.insert(0, ROOT)
 import fwdstep  # noqa: E402
 from fwdstep.spec import load_spec  # noqa: E402
 
-from blocks.reference import is_hurwitz  # noqa: E402
+from fwdstep.blocks.reference import is_hurwitz  # noqa: E402
 
 
 def diagram(name: str) -> str:

@@ -53,7 +53,7 @@ def register(cls):
 def load_library() -> dict[str, type]:
     """The registry with the library, installed entry points and ``$FWDSTEP_PLUGINS``."""
     global _library_loaded
-    import blocks  # noqa: F401  (importing registers every library block)
+    import fwdstep.blocks  # noqa: F401  (importing registers every library block)
     if not _library_loaded:
         _library_loaded = True
         _load_entry_points()

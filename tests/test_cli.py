@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 from fwdstep.registry import load_library
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(__file__), ".."))

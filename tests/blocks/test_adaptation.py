@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from blocks.adaptation import AdaptationLaw
-from blocks.robot import Regressor, TwoLinkArm
+from fwdstep.blocks.adaptation import AdaptationLaw
+from fwdstep.blocks.robot import Regressor, TwoLinkArm
 from fwdstep.errors import ParameterError
 
 SPD = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, -0.3], [0.0, -0.3, 4.0]])

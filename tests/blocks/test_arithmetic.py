@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from blocks.arithmetic import Demux, Gain, Mux, Product, ScalarProduct, Selector, Sum
+from fwdstep.blocks.arithmetic import Demux, Gain, Mux, Product, ScalarProduct, Selector, Sum
 from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 

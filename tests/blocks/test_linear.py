@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from blocks.linear import Integrator, StateSpace, TransferFunction
+from fwdstep.blocks.linear import Integrator, StateSpace, TransferFunction
 from fwdstep.errors import ParameterError
 
 T_END = 4.0

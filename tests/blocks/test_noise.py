@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 import fwdstep
-from blocks.noise import WhiteNoise
+from fwdstep.blocks.noise import WhiteNoise
 from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 from fwdstep.sweep import run_sweep

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from blocks.nonlinear import DeadZone, Friction, Lookup1D, RateLimiter, Saturation, Switch
+from fwdstep.blocks.nonlinear import DeadZone, Friction, Lookup1D, RateLimiter, Saturation, Switch
 from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 

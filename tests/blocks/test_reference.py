@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from blocks.reference import ReferenceDynamics, is_hurwitz
+from fwdstep.blocks.reference import ReferenceDynamics, is_hurwitz
 from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ParameterError
 

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from blocks.robot import (NLinkArm, NLinkRegressor, PointMass, PointMassRegressor, Regressor,
+from fwdstep.blocks.robot import (NLinkArm, NLinkRegressor, PointMass, PointMassRegressor, Regressor,
                           TwoLinkArm)
 from fwdstep.errors import ParameterError
 

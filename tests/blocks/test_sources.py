@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from numpy.polynomial import polynomial as P
 
-from blocks.sources import Constant, MultiSine, Polynomial, RandomDisturbance, Sine, Step
+from fwdstep.blocks.sources import Constant, MultiSine, Polynomial, RandomDisturbance, Sine, Step
 from fwdstep.compiler import stack_blocks
 from fwdstep.errors import ConfigError, ParameterError
 

@@ -8,8 +8,8 @@ expansion of prod_i (p^2 + omega_i^2) and the paper's n* = 3 formulas.
 import numpy as np
 import pytest
 
-import blocks  # noqa: F401  registers the library
-from blocks.stacked import (FilterDerivatives, FrequencyParameters, LinearCombination,
+import fwdstep.blocks  # noqa: F401  registers the library
+from fwdstep.blocks.stacked import (FilterDerivatives, FrequencyParameters, LinearCombination,
                             TransferFunctionSum)
 
 W_GRID = np.array([0.05, 0.3, 1.0, 2.7, 9.0, 40.0])

@@ -10,8 +10,8 @@ import pytest
 
 pin = pytest.importorskip("pinocchio")
 
-from blocks.robot import NLinkArm, NLinkRegressor  # noqa: E402
-from blocks.urdf import NAMED_ROBOTS, URDFArm, URDFRegressor, _robots_folder  # noqa: E402
+from fwdstep.blocks.robot import NLinkArm, NLinkRegressor  # noqa: E402
+from fwdstep.blocks.urdf import NAMED_ROBOTS, URDFArm, URDFRegressor, _robots_folder  # noqa: E402
 from fwdstep.errors import ParameterError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -79,7 +79,7 @@ def test_payload_step_switches_the_arm_to_the_heavier_link_2_exactly(tmp_path):
     RK4 keeps its order); reference: solve_ivp on the plain arm with me = 2, then me = 3."""
     from scipy.integrate import solve_ivp
 
-    from blocks.robot import TwoLinkArm
+    from fwdstep.blocks.robot import TwoLinkArm
     path = tmp_path / "payload.yaml"
     path.write_text("""
 description: open-loop two-link arm picking up 1 kg at t = 0.35 (off the step grid)

@@ -15,7 +15,7 @@ import os
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.compiler import compile_spec
 from fwdstep.spec import load_spec

@@ -21,7 +21,7 @@ import pytest
 from scipy import signal
 
 import fwdstep
-from blocks.robot import TwoLinkArm
+from fwdstep.blocks.robot import TwoLinkArm
 from fwdstep.spec import load_spec
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
@@ -154,7 +154,7 @@ log: [ref.z, ref.zdot, ref.s, q.y_d1]
 """)
     r = fwdstep.simulate(fwdstep.load_diagram(str(path)))
     t = r.t
-    from blocks.reference import critically_damped
+    from fwdstep.blocks.reference import critically_damped
     alphas = critically_damped(alpha, ell)
 
     def steady(w, rhs):                 # rhs(s): (2, 2) complex; returns z phasor map

@@ -18,7 +18,7 @@ import pytest
 from scipy.integrate import cumulative_simpson
 
 import fwdstep
-from blocks.robot import TwoLinkArm
+from fwdstep.blocks.robot import TwoLinkArm
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 DIAGRAMS = os.path.join(ROOT, "diagrams")

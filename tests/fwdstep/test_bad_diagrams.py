@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.errors import (AlgebraicLoopError, ConfigError, DiagramError, ExpressionError,
                             ParameterError, ShapeError, UnknownBlockTypeError, WiringError,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from cli import main
+from fwdstep.cli import main
 from fwdstep.compare import compare
 from fwdstep.errors import OutputError
 from fwdstep.result import load_result

@@ -11,7 +11,7 @@ import os
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep.sweep as sweep_module
 from fwdstep.errors import ConfigError
 from fwdstep.sweep import METRICS, plan_batches, run_sweep

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 import fwdstep
-from cli import main
+from fwdstep.cli import main
 from fwdstep.drawing import (build_picture, diagram_dot, draw_diagram, equation_of,
                              feedback_edges, layered_positions)
 

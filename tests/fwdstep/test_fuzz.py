@@ -41,7 +41,7 @@ FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None, print_blob=
                 suppress_health_check=list(HealthCheck))
 
 LIBRARY = {name: cls for name, cls in sorted(load_library().items())
-           if cls.__module__.startswith("blocks.")}
+           if cls.__module__.startswith("fwdstep.blocks.")}
 
 
 class ExampleHung(BaseException):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.outputs import MANIFEST_FILE, OutputDir, owned_files
 
@@ -403,7 +403,7 @@ def test_a_sweep_into_a_directory_held_by_a_run_is_refused(tmp_path, capsys):
 STRESS_DRIVER = r"""
 import contextlib, io, json, resource, sys
 resource.setrlimit(resource.RLIMIT_AS, (CAP, CAP))
-import cli
+from fwdstep import cli
 out = {}
 for name, argv in json.loads(sys.argv[1]).items():
     err = io.StringIO()

@@ -4,7 +4,7 @@ NetCDF and loaded back unchanged; a single Result as Dataset and DataFrame."""
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.compiler import compile_spec
 from fwdstep.errors import DivergenceError

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.errors import ConfigError, OutputError
 from fwdstep.result import safe_path

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.block import Block, Param
 from fwdstep.errors import BlockRuntimeError, DivergenceError

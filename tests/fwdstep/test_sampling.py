@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-import cli
+from fwdstep import cli
 from fwdstep.errors import ConfigError
 from fwdstep.sampling import Distribution, parse_random, unit_points, variant_values
 

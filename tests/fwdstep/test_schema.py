@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import cli
+from fwdstep import cli
 from fwdstep.registry import load_library
 from fwdstep.schema import diagram_schema, schema_text
 from fwdstep.spec import SIMULATION_KEYS, TOP_LEVEL_KEYS

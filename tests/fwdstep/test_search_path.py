@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 import fwdstep
 from fwdstep.errors import ConfigError
 from fwdstep.search import shipped_library

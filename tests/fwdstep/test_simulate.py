@@ -211,7 +211,7 @@ def test_linear_form_describes_the_block(loop):
 
 
 def test_a_subclass_that_overrides_output_is_called_not_fused():
-    from blocks.linear import Integrator
+    from fwdstep.blocks.linear import Integrator
 
     class Clipped(Integrator):
         def output(self, t, x, u):

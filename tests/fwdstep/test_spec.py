@@ -94,7 +94,7 @@ simulation: {t_final: -1, step: 0.1}
 
 
 def test_validate_reports_every_mistake_one_line_each(tmp_path, capsys):
-    import cli
+    from fwdstep import cli
     path = tmp_path / "many.yaml"
     path.write_text(MANY_MISTAKES)
     assert cli.main(["validate", str(path)]) == 2
@@ -181,7 +181,7 @@ def test_adaptation_gain_messages_say_what_is_wrong_with_the_value(tmp_path, gam
 
 def test_every_option_has_help_and_version_prints(capsys):
     import argparse
-    import cli
+    from fwdstep import cli
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     missing = [f"{name} {a.option_strings or a.dest}" for name, sp in sub.choices.items()

@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-import cli
+from fwdstep import cli
 from fwdstep.errors import ConfigError
 from fwdstep.sampling import Distribution
 from fwdstep.sweep import (METRICS, parse_grid, parse_random, run_sweep, split_values,
@@ -106,7 +106,7 @@ def test_cli_writes_table_and_figure(path, tmp_path, capsys):
 
 def test_a_raising_variant_does_not_spoil_its_batch(path, monkeypatch):
     """A block that raises for one variant only: the batch is re-run variant by variant."""
-    from blocks.adaptation import AdaptationLaw
+    from fwdstep.blocks.adaptation import AdaptationLaw
     original = AdaptationLaw.derivative
 
     def fragile(self, t, x, u):

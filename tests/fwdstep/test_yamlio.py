@@ -232,7 +232,7 @@ def test_control_characters_are_reported_at_line_and_column(char, name, kind):
 
 
 def test_control_character_in_a_set_value_is_one_line(capsys, tmp_path):
-    import cli
+    from fwdstep import cli
     path = tmp_path / "d.yaml"
     path.write_text("parameters:\n  k: 1\nblocks:\n  c: {type: Constant, value: [1]}\n")
     assert cli.main(["validate", str(path), "--set", "k=[1, 2\x1b[2J]"]) == 2
