@@ -126,6 +126,22 @@ def _infer_shape(block: Block, shape, *arrays) -> tuple:
 
 
 # ----------------------------------------------------------------------------- blocks
+
+def _declare_interval(block: Block, lower, upper, shape, kernel) -> None:
+    """The per-element interval [lower, upper] (lower <= upper) of Saturation and DeadZone,
+    their one input u and feedthrough output y of ``shape``, and their kernel."""
+    lo = _per_element(block, "lower", lower, shape)
+    hi = _per_element(block, "upper", upper, shape)
+    if np.any(lo > hi):
+        raise ParameterError(f"block '{block.name}' parameter 'lower' must not exceed "
+                             f"'upper', got lower {lo.tolist()}, upper {hi.tolist()}",
+                             block=block.name)
+    block.declare_input("u", shape)
+    block.declare_output("y", shape, feedthrough=("u",))
+    block.set_param("lower", lo)
+    block.set_param("upper", hi)
+    block.set_kernels(output=kernel, params=("lower", "upper"))
+
 @register
 class Saturation(Block):
     """Saturation: each element clipped to [lower, upper] (e.g. a torque limit).
@@ -157,16 +173,7 @@ class Saturation(Block):
         lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
         hi = np.inf if upper is None else np.asarray(upper, dtype=float)
         shape = _infer_shape(self, shape, lo, hi)
-        lo, hi = _per_element(self, "lower", lo, shape), _per_element(self, "upper", hi, shape)
-        if np.any(lo > hi):
-            raise ParameterError(f"block '{self.name}' parameter 'lower' must not exceed "
-                                 f"'upper', got lower {lo.tolist()}, upper {hi.tolist()}",
-                                 block=self.name)
-        self.declare_input("u", shape)
-        self.declare_output("y", shape, feedthrough=("u",))
-        self.set_param("lower", lo)
-        self.set_param("upper", hi)
-        self.set_kernels(output=saturation_output, params=("lower", "upper"))
+        _declare_interval(self, lo, hi, shape, saturation_output)
 
 
 @register
@@ -196,17 +203,7 @@ class DeadZone(Block):
 
     def setup(self, lower, upper, shape):
         shape = _infer_shape(self, shape, lower, upper)
-        lo = _per_element(self, "lower", lower, shape)
-        hi = _per_element(self, "upper", upper, shape)
-        if np.any(lo > hi):
-            raise ParameterError(f"block '{self.name}' parameter 'lower' must not exceed "
-                                 f"'upper', got lower {lo.tolist()}, upper {hi.tolist()}",
-                                 block=self.name)
-        self.declare_input("u", shape)
-        self.declare_output("y", shape, feedthrough=("u",))
-        self.set_param("lower", lo)
-        self.set_param("upper", hi)
-        self.set_kernels(output=dead_zone_output, params=("lower", "upper"))
+        _declare_interval(self, lower, upper, shape, dead_zone_output)
 
 
 @register
