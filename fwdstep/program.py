@@ -210,25 +210,31 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     stage1 = ["ts = t"] + output_pass(xn)
     function("def first(t):", stage1 + derivative_pass(xn, 0))
     function("def first_record(t, row):", stage1 + record + derivative_pass(xn, 0))
+    def stage_state(coeffs, scale: str) -> list:
+        """x_i = x_n + sum_j (scale a_ij) k_j, summed in the reference stepper's order."""
+        if not coeffs:
+            return ["X[...] = xn"]
+        j, a = coeffs[0]
+        lines = [f"multiply(K{j}, {scale}{src.const('a', a)}, out=X)", "add(X, xn, out=X)"]
+        for j, a in coeffs[1:]:
+            lines += [f"multiply(K{j}, {scale}{src.const('a', a)}, out=T)", "add(X, T, out=X)"]
+        return lines
+
+    def update(coeffs, scale: str) -> list:
+        """x_n += sum_j (scale b_j) k_j."""
+        lines = []
+        for j, b in coeffs:
+            lines += [f"multiply(K{j}, {scale}{src.const('b', b)}, out=T)", "add(xn, T, out=xn)"]
+        return lines
+
     rest = []
     stage = output_pass(X)
     for s, (ch, coeffs) in enumerate(stages, start=1):
-        # x_i = x_n + sum_j a_ij k_j, summed in the reference stepper's order
-        if coeffs:
-            j, a = coeffs[0]
-            rest.append(f"multiply(K{j}, {src.const('a', a)}, out=X)")
-            rest.append("add(X, xn, out=X)")
-        else:
-            rest.append("X[...] = xn")
-        for j, a in coeffs[1:]:
-            rest.append(f"multiply(K{j}, {src.const('a', a)}, out=T)")
-            rest.append("add(X, T, out=X)")
+        rest.extend(stage_state(coeffs, ""))       # coefficients already times h
         rest.append(f"ts = t + {src.const('c', ch)}")
         rest.extend(stage)
         rest.extend(derivative_pass(X, s))
-    for j, b in final_coeffs:
-        rest.append(f"multiply(K{j}, {src.const('b', b)}, out=T)")
-        rest.append("add(xn, T, out=xn)")
+    rest.extend(update(final_coeffs, ""))
     function("def rest(t):", rest)
     function("def final(t, row):", stage1 + record)
     # the same stage 1 at an explicit stage time, and a step of any size h whose stage
@@ -240,23 +246,11 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     function("def final_ts(t, ts, row):", stage1_ts + record)
     rest_h = []
     for s, (c, row_a) in enumerate(zip(tab.c[1:], tab.a[1:]), start=1):
-        coeffs = [(j, a) for j, a in enumerate(row_a) if a != 0.0]
-        if coeffs:
-            j, a = coeffs[0]
-            rest_h.append(f"multiply(K{j}, h * {src.const('a', a)}, out=X)")
-            rest_h.append("add(X, xn, out=X)")
-        else:
-            rest_h.append("X[...] = xn")
-        for j, a in coeffs[1:]:
-            rest_h.append(f"multiply(K{j}, h * {src.const('a', a)}, out=T)")
-            rest_h.append("add(X, T, out=X)")
+        rest_h.extend(stage_state([(j, a) for j, a in enumerate(row_a) if a != 0.0], "h * "))
         rest_h.append(f"ts = min(max(t + {src.const('c', c)} * h, lo), hi)")
         rest_h.extend(stage)
         rest_h.extend(derivative_pass(X, s))
-    for j, b in enumerate(tab.b):
-        if b != 0.0:
-            rest_h.append(f"multiply(K{j}, h * {src.const('b', b)}, out=T)")
-            rest_h.append("add(xn, T, out=xn)")
+    rest_h.extend(update([(j, b) for j, b in enumerate(tab.b) if b != 0.0], "h * "))
     function("def rest_h(t, h, lo, hi):", rest_h)
     # every output at (ts, xn), returning the signals discrete blocks read: {index: value}
     if sampled:
