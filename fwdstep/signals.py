@@ -5,7 +5,9 @@
 ``KeyboardInterrupt`` subclass, so every place that already keeps partial results on Ctrl-C
 (the run loop, sweeps) does the same for ``timeout``, a batch scheduler or a closed terminal.
 ``deferred()`` holds them back while results are being written: a signal that arrives then
-is remembered (``pending()``) and the write completes.
+is remembered (``pending()``) and the write completes.  Once one signal has ended the
+command, later ones are ignored: the partial results are being saved and the user has been
+told once (pressing Ctrl-C again and again never adds a second message or a traceback).
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ REASONS = {signal.SIGINT: "interrupted by the user", signal.SIGTERM: "terminated
            signal.SIGHUP: "hung up (SIGHUP)"}
 HANDLED = tuple(REASONS)
 
-_state = {"deferring": 0, "pending": None}
+_state = {"deferring": 0, "pending": None, "acted": 0}
 
 
 class Interrupted(KeyboardInterrupt):
@@ -43,9 +45,12 @@ def reason(exc: BaseException | None) -> str:
 
 
 def _handler(signum, frame):
+    if _state["acted"]:                  # the command is already ending on an earlier one
+        return
     if _state["deferring"]:
         _state["pending"] = _state["pending"] or signum
         return
+    _state["acted"] = signum
     raise Interrupted(signum)
 
 
@@ -61,7 +66,7 @@ def handled():
             previous[signum] = signal.signal(signum, _handler)
         except (OSError, ValueError):        # not available on this platform
             pass
-    _state["pending"] = None
+    _state["pending"], _state["acted"] = None, 0
     try:
         yield
     finally:
@@ -82,4 +87,6 @@ def deferred():
 def pending() -> Interrupted | None:
     """The interruption that arrived during ``deferred()`` (then forgotten), or None."""
     signum, _state["pending"] = _state["pending"], None
+    if signum:
+        _state["acted"] = signum             # it ends the command: later ones are ignored
     return Interrupted(signum) if signum else None

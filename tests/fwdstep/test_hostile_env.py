@@ -266,7 +266,7 @@ def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
                 raise KeyboardInterrupt
             return None
 
-    monkeypatch.delitem(sys.modules, "fwdstep.commands")
+    monkeypatch.delitem(sys.modules, "fwdstep.commands", raising=False)
     monkeypatch.delattr(fwdstep, "commands", raising=False)
     monkeypatch.setattr(sys, "meta_path", [Finder()] + sys.meta_path)
     assert cli.main(["blocks"]) == 130

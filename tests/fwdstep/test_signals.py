@@ -1,0 +1,42 @@
+"""fwdstep.signals: the first handled signal ends a command, later ones are ignored.
+
+CI once printed the interruption twice: a second Ctrl-C arrived while the first was being
+reported and raised again.  These tests deliver the signals in-process, at chosen moments,
+so the property does not depend on timing."""
+import os
+import signal
+
+import pytest
+
+from fwdstep import signals
+
+
+def test_a_second_signal_after_the_first_is_ignored():
+    with signals.handled():
+        with pytest.raises(signals.Interrupted) as info:
+            os.kill(os.getpid(), signal.SIGINT)
+        assert info.value.signum == signal.SIGINT
+        os.kill(os.getpid(), signal.SIGINT)        # would raise again without the latch
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert signals.pending() is None
+
+
+def test_a_signal_while_deferred_is_reported_once_and_then_the_rest_ignored():
+    with signals.handled():
+        with signals.deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)    # the first one counts
+        late = signals.pending()
+        assert late is not None and late.signum == signal.SIGTERM
+        os.kill(os.getpid(), signal.SIGINT)        # after it was acted on: ignored
+        assert signals.pending() is None
+
+
+def test_each_command_starts_afresh():
+    with signals.handled():
+        with pytest.raises(signals.Interrupted):
+            os.kill(os.getpid(), signal.SIGHUP)
+    with signals.handled():                        # a new command: the latch is reset
+        with pytest.raises(signals.Interrupted) as info:
+            os.kill(os.getpid(), signal.SIGINT)
+        assert info.value.signum == signal.SIGINT
