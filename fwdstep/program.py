@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .block import Block
 from .linear import FusionPlan, LinearGroup, plan_fusion
 from .solvers import TABLEAUX, step_plan
 
@@ -154,6 +155,27 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
         return f"({text},)" if len(inputs) == 1 else f"({text})"
 
     # ---------------------------------------------------------------- one stage
+    kargs: dict = {}
+
+    def kernel_call(block, fn, xview: str, inputs) -> str:
+        """A direct call of kernel ``fn`` of ``block``: what ``Block.output`` /
+        ``Block.derivative`` do, with the parameter arguments bound once per run (they
+        are fixed during a run) instead of gathered on every call."""
+        k = block.kernels
+        if id(block) not in kargs:
+            kargs[id(block)] = "".join(", " + src.const("p", a) for a in block.kernel_args())
+        ins = args(inputs) if k.tuple_inputs else "".join(", " + read(u) for u in inputs)
+        if k.tuple_inputs:
+            ins = ", " + ins
+        return f"{src.const('kern', fn)}(ts, {xview}{ins}{kargs[id(block)]})"
+
+    def direct(block, method: str) -> bool:
+        """True when ``block``'s ``method`` is the base class's kernel call (not overridden
+        by its class or wrapped on the instance)."""
+        k = block.kernels
+        return (getattr(type(block), method) is getattr(Block, method) and k is not None
+                and method not in block.__dict__ and getattr(k, method) is not None)
+
     def output_pass(buffer) -> list:
         lines = []
         for kind, op in ops:
@@ -162,8 +184,22 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 if op.outputs:
                     lines.extend(g.code(src, buffer, plan, read, g.Y))
                 continue
-            call = (f"{src.const('out', op.block.output)}(ts, {state_view(buffer, op.state)}, "
-                    f"{args(op.inputs)})")
+            blk = op.block
+            if direct(blk, "output") and blk.kernels.packed:
+                lines.append("r = " + kernel_call(blk, blk.kernels.output,
+                                                  state_view(buffer, op.state), op.inputs))
+                for idx, (a, b, shape) in zip(op.outputs, blk._unpack):
+                    lines.append(f"{name[idx]} = r[:, {a}:{b}]" if shape is None else
+                                 f"{name[idx]} = r[:, {a}:{b}].reshape((r.shape[0],) + "
+                                 f"{src.const('shape', shape)})")
+                lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)
+                continue
+            if direct(blk, "output"):
+                call = kernel_call(blk, blk.kernels.output, state_view(buffer, op.state),
+                                   op.inputs)
+            else:
+                call = (f"{src.const('out', blk.output)}(ts, {state_view(buffer, op.state)}, "
+                        f"{args(op.inputs)})")
             if len(op.outputs) == 1:
                 lines.append(f"{name[op.outputs[0]]} = {call}[0]")
             else:
@@ -176,7 +212,12 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
         lines = []
         for step in called_stateful:
             kv = src.const(f"k{s}_", K[s][:, step.state])
-            fn = src.const("der", step.block.derivative)
+            blk = step.block
+            if direct(blk, "derivative"):
+                lines.append(f"{kv}[...] = " + kernel_call(
+                    blk, blk.kernels.derivative, state_view(buffer, step.state), step.inputs))
+                continue
+            fn = src.const("der", blk.derivative)
             lines.append(f"{kv}[...] = {fn}(ts, {state_view(buffer, step.state)}, "
                          f"{args(step.inputs)})")
         if derivative_group is not None:
