@@ -78,6 +78,7 @@ from .result import atomic_write, error_metrics, safe_path
 from .sampling import (MAX_VARIANTS, parse_grid, parse_random, split_values,  # noqa: F401
                        variant_seeds, variant_values)
 from .simulate import SimulationInterrupted, simulate
+from .variants import VariantSpecs
 
 CSV_FILE = "sweep.csv"
 FIGURE_FILE = "sweep.png"
@@ -401,7 +402,6 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     explicitly, one dict of parameter values each (a missing name keeps the diagram's
     value).  ``progress(text)`` is told about each finished batch.
     Raises ``DiagramError`` for a bad diagram or bad sweep options (nothing is run then)."""
-    from .spec import load_spec
     grid, random, overrides = dict(grid or {}), dict(random or {}), dict(overrides or {})
     wall0 = time.perf_counter()
     if variants is not None:
@@ -418,8 +418,8 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
         for values, s in zip(all_values, variant_seeds(len(all_values), seed)):
             values[seed_parameter] = s
         names.append(seed_parameter)
-    documents: dict = {}            # each YAML file parsed once for all variants
-    base = load_spec(path, overrides, cache=documents)
+    loader = VariantSpecs(path, overrides)   # each variant's spec derived from one load
+    base = loader.base
     for name in names:
         if name not in base.parameters and "." not in name:   # paths: load_spec checks them
             raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
@@ -427,11 +427,11 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
                               file=base.file)
         if name in overrides:
             raise ConfigError(f"parameter '{name}' is both swept and set with --set")
-    specs, blocks, made = [], [], {}
+    specs, blocks = [], []
     for values in all_values:
         try:
-            spec = load_spec(path, {**overrides, **values}, cache=documents)
-            blocks.extend(instantiate_variants([spec], made))
+            spec = loader.spec(values)
+            blocks.extend(instantiate_variants([spec], loader.made))
         except DiagramError as exc:
             shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
             raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
