@@ -109,11 +109,13 @@ class MechanicalPlant(Block):
     """Base of the plants of eq. (1): state (q, qdot), input tau and optional tau_star, and the
     measurable outputs q, qdot (state only).  Not registered; subclasses add the dynamics."""
 
-    def declare_plant(self, n: int, q0, qdot0, unit: str = "rad") -> None:
+    def declare_plant(self, n: int, q0, qdot0, unit: str = "rad", axis: str = "joint") -> None:
+        """``unit`` of q ("rad" for revolute joints, "m" for a point mass's position) and the
+        name of one coordinate ("joint", "axis"), the defaults figures use for q and qdot."""
         self._n = n
         self.declare_input("tau", (n,))
         self.declare_input("tau_star", (n,), optional=True)
-        joints = [f"joint {i + 1}" for i in range(n)]
+        joints = [f"{axis} {i + 1}" for i in range(n)]
         self.declare_output("q", (n,), feedthrough=(), label="$q$", unit=unit, components=joints)
         self.declare_output("qdot", (n,), feedthrough=(), label=r"$\dot q$", unit=f"{unit}/s",
                             components=joints)
@@ -588,7 +590,7 @@ class PointMass(MechanicalPlant):
         if np.any(m <= 0.0):
             raise ParameterError(f"block {self.name!r} parameter 'mass' must be positive, "
                                  f"got {np.asarray(mass).tolist()}", block=self.name)
-        self.declare_plant(n, q0, qdot0)
+        self.declare_plant(n, q0, qdot0, unit="m", axis="axis")    # positions in metres
         self.set_param("inv_mass", 1.0 / m)
         self.set_kernels(output=point_mass_output, derivative=point_mass_derivative,
                          params=("inv_mass",))
@@ -745,37 +747,60 @@ def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
     return Y.reshape((B, n, 4 * n))
 
 
-def n_link_output(t, x, tau, tau_star, lengths, theta, gravity, J_cum, mask_ki, mask_ik):
+def n_link_output(t, x, tau, tau_star, lengths, theta, gravity, upper, lower):
     return plant_state_outputs(x)
 
 
-def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, J_cum, mask_ki, mask_ik):
-    """dx = [qdot, H^-1 (tau + tau_star - C qdot - g)] with H, C, g of NLinkArm's docstring
-    (J_cum[b, k, l] = sum_{i >= max(k, l)} J_i; mask_ki[k, i] = (k <= i), mask_ik its
-    transpose)."""
+def _suffix(a):
+    """s[:, i] = a[:, i] + a[:, i + 1] + ... (sums over link i and the links beyond it)."""
+    return ko.cumsum1(a[:, ::-1])[:, ::-1]
+
+
+def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, upper, lower):
+    """dx = [qdot, H^-1 (tau + tau_star - C qdot - g)] with H, C, g of NLinkArm's docstring,
+    in O(n^2) real arithmetic from sums over the outer links (``upper`` [a, b] = (a <= b),
+    ``lower`` = 1 - upper).  With O_i the origin of joint i, w_i = s_i E_i the first moment
+    of link i (s_i = theta's [sx, sy] rotated by phi_i = q_1 + ... + q_i) and
+    M_i = m_i O_i + w_i, for a <= b:
+    H_ab = sum_{i>=b} (m_i |O_i|^2 + 2 O_i.w_i + J_i) - (O_a + O_b).sum_{i>=b} M_i
+           + (sum_{i>=b} m_i) O_a.O_b;
+    C qdot + g is the recursive Newton-Euler torque at qddot = 0 (the force on link i is
+    F_i = m_i A_i - phidot_i^2 w_i + j gravity m_i, A_i = -sum_{j<i} l_j phidot_j^2 E_j, and
+    joint k carries sum_{i>=k} (O_i - O_k) x F_i + w_i x A_i + gravity w_i.x)."""
     n = x.shape[1] // 2
     q = x[:, :n]
     qdot = x[:, n:]
-    E, G = _n_link_geometry(q, lengths, mask_ik)
-    R = np.real(G)
-    I = np.imag(G)
-    th = np.ascontiguousarray(theta).reshape((theta.shape[0], n, 4))
-    m = th[:, :, 0]
-    # H = sum_i m_i (R_i^T R_i + I_i^T I_i) + the first-moment and inertia terms
-    H = ko.bmatmul(np.ascontiguousarray(R.transpose((0, 2, 1))) * m.reshape((m.shape[0], 1, n)),
-                   R)
-    H = H + ko.bmatmul(np.ascontiguousarray(I.transpose((0, 2, 1)))
-                       * m.reshape((m.shape[0], 1, n)), I)
-    sE_re = th[:, :, 1] * np.real(E) - th[:, :, 2] * np.imag(E)       # Re(s_i E_i)
-    sE_im = th[:, :, 1] * np.imag(E) + th[:, :, 2] * np.real(E)       # Im(s_i E_i)
-    B = R.shape[0]
-    cross = (sE_re.reshape((sE_re.shape[0], n, 1)) * R
-             + sE_im.reshape((sE_im.shape[0], n, 1)) * I)             # (B, i, l)
-    cross = ko.bmatmul(mask_ki, cross)
-    H = H + cross + np.ascontiguousarray(cross.transpose((0, 2, 1))) + J_cum
-    Y = _n_link_regressor(qdot, qdot, np.zeros_like(qdot), lengths, gravity, mask_ik, E, G)
-    bias = ko.bmatvec(Y, theta)                                       # C qdot + g
+    phid = ko.cumsum1(qdot)
+    phi = ko.cumsum1(q)
+    c = np.cos(phi)
+    s = np.sin(phi)
+    lc = lengths * c
+    ls = lengths * s
+    Ox = ko.cumsum1(lc) - lc                       # joint origins O_1 = 0, O_2, ..., O_n
+    Oy = ko.cumsum1(ls) - ls
+    m = theta[:, 0::4]
+    wx = theta[:, 1::4] * c - theta[:, 2::4] * s   # first moments w_i = s_i E_i
+    wy = theta[:, 1::4] * s + theta[:, 2::4] * c
+    P = m * (Ox * Ox + Oy * Oy) + 2.0 * (Ox * wx + Oy * wy) + theta[:, 3::4]
+    SM = _suffix(m)
+    SX = _suffix(m * Ox + wx)
+    SY = _suffix(m * Oy + wy)
+    row = _suffix(P) - Ox * SX - Oy * SY                                  # terms in b only
+    U = (row[:, None, :] - Ox[:, :, None] * SX[:, None, :] - Oy[:, :, None] * SY[:, None, :]
+         + SM[:, None, :] * (Ox[:, :, None] * Ox[:, None, :] + Oy[:, :, None] * Oy[:, None, :]))
+    H = U * upper + U.transpose((0, 2, 1)) * lower                        # U[min, max]
+    v2 = phid * phid
+    lv = lc * v2
+    Ax = lv - ko.cumsum1(lv)                       # A_i = -sum_{j<i} l_j phidot_j^2 E_j
+    lv = ls * v2
+    Ay = lv - ko.cumsum1(lv)
+    g = gravity[:, None]
+    Fx = m * Ax - v2 * wx
+    Fy = m * Ay - v2 * wy + g * m
+    T = Ox * Fy - Oy * Fx + wx * Ay - wy * Ax + g * wx
+    bias = _suffix(T) - Ox * _suffix(Fy) + Oy * _suffix(Fx)             # C qdot + g
     rhs = tau + tau_star - bias
+    B = rhs.shape[0]
     dx = np.empty((B, 2 * n))
     dx[:, :n] = qdot
     dx[:, n:] = ko.bsolve(H, rhs)
@@ -867,18 +892,10 @@ class NLinkArm(MechanicalPlant):
         self.set_param("lengths", lengths)
         self.set_param("theta", theta)
         self.set_param("gravity", gravity)
-        # sum_{i >= max(k, l)} J_i is added to H through this mask product
-        # sum_{i >= max(k, l)} J_i is added to H through this mask product
-        self.set_param("mask_ki", np.triu(np.ones((n, n))))         # [k, i] = (k <= i)
-        self.set_param("mask_ik", np.tril(np.ones((n, n))))         # [i, k] = (k <= i)
-        self.finalize(1)
-
-    def finalize(self, batch: int) -> None:
-        theta = self.p.theta.reshape(self.p.theta.shape[0], self._n, 4)
-        mask = self.p.mask_ki[0]
-        self.p.J_cum = np.einsum("ki,li,bi->bkl", mask, mask, theta[:, :, 3])
+        self.set_param("upper", np.triu(np.ones((n, n))))           # [a, b] = (a <= b)
+        self.set_param("lower", np.tril(np.ones((n, n)), -1))       # [a, b] = (a > b)
         self.set_kernels(output=n_link_output, derivative=n_link_derivative,
-                         params=("lengths", "theta", "gravity", "J_cum", "mask_ki", "mask_ik"))
+                         params=("lengths", "theta", "gravity", "upper", "lower"))
 
 
 @register

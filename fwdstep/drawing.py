@@ -155,7 +155,8 @@ def build_picture(diagram, depth: int | None = None) -> Picture:
         key = (so, sp, do, dp)
         if key not in seen:
             seen.add(key)
-            edges.append([so, sp, do, dp, shape_text(shape), False])
+            known = not ({sb, db} & getattr(diagram, "open_shapes", set()))
+            edges.append([so, sp, do, dp, shape_text(shape) if known else "", False])
     back = feedback_edges(list(boxes), [(e[0], e[2]) for e in edges])
     for e in edges:
         e[5] = (e[0], e[2]) in back
@@ -396,8 +397,8 @@ class _Unwired:
     """What ``build_picture`` needs of a diagram that does not compile on its own (a subsystem
     file of ``diagrams/lib``: its inputs are wired by the parent): spec and blocks."""
 
-    def __init__(self, spec, blocks):
-        self.spec, self.blocks = spec, blocks
+    def __init__(self, spec, blocks, open_shapes=()):
+        self.spec, self.blocks, self.open_shapes = spec, blocks, set(open_shapes)
 
     def resolve(self, name: str) -> str:
         return self.spec.aliases.get(name, name)
@@ -416,17 +417,42 @@ def diagram_for_drawing(path: str, overrides: dict | None = None):
         doc = read_yaml_file(path)
         if not isinstance(doc, dict) or not doc.get("ports"):
             raise
-        from .graph import instantiate
         spec = load_spec(path, overrides)
         try:
-            from .shapes import infer_shapes
-            infer_shapes(spec)
-            return _Unwired(spec, instantiate(spec))
+            return _Unwired(spec, *_blocks_with_open_shapes(spec))
         except (DiagramError, ImportError) as exc:
             raise OutputError(f"{path} is a subsystem whose blocks take their shapes from the "
                               f"diagram that uses it ({exc.__class__.__name__}: "
                               f"{str(exc).split(': ', 1)[-1]}); draw a diagram that uses it"
                               ) from None
+
+
+def _blocks_with_open_shapes(spec) -> tuple:
+    """The blocks of a subsystem file drawn alone, and the names of those whose shapes only
+    the parent diagram can fix.  Shapes the file fixes are inferred as for a run; a block
+    whose shape stays open (a Product fed by the subsystem's inputs) is built with a
+    stand-in shape, every size 2, so its port names can be drawn; the edges touching it are
+    drawn without a shape, because the stand-in is not the diagram's."""
+    import numpy as np
+    from .errors import DiagramError
+    from .graph import _instantiate_one
+    blocks, open_ = [], set()                  # load_spec has inferred what the file fixes
+    for entry in spec.blocks:
+        inferred = set(getattr(entry.cls, "shape_from", {})) - set(entry.key_lines)
+        if inferred:
+            open_.add(entry.name)          # may hold a default or another block's stand-in
+        try:
+            blocks.append(_instantiate_one(entry))
+            continue
+        except DiagramError:
+            if not inferred:
+                raise
+        example = getattr(entry.cls, "example", {}) or {}
+        for param in inferred:             # every inferred shape: all sizes 2 compose
+            rank = len(np.atleast_1d(example.get(param, [2])))
+            entry.params[param] = np.full(rank, 2.0)
+        blocks.append(_instantiate_one(entry))
+    return blocks, open_
 
 
 def subsystem_ports(picture: Picture, path: str, diagram) -> None:
@@ -441,14 +467,16 @@ def subsystem_ports(picture: Picture, path: str, diagram) -> None:
             for tgt in targets if isinstance(targets, list) else [targets]:
                 blk, _, port = str(tgt).rpartition(".")
                 if blk in blocks and port in blocks[blk].inputs:
-                    shape = shape_text(blocks[blk].inputs[port].shape)
+                    shape = ("" if blk in getattr(diagram, "open_shapes", ()) else
+                             shape_text(blocks[blk].inputs[port].shape))
                     picture.edges.append(("inputs", pname, blk, port, shape, False))
     if outs:
         picture.boxes["outputs"] = Box("outputs", "outputs", "subsystem ports", list(outs), [])
         for pname, src in outs.items():
             blk, _, port = str(src).rpartition(".")
             if blk in blocks and port in blocks[blk].outputs:
-                shape = shape_text(blocks[blk].outputs[port].shape)
+                shape = ("" if blk in getattr(diagram, "open_shapes", ()) else
+                         shape_text(blocks[blk].outputs[port].shape))
                 picture.edges.append((blk, port, "outputs", pname, shape, False))
 
 

@@ -128,3 +128,29 @@ def test_a_subsystem_file_draws_with_its_ports_as_boxes(tmp_path):
     assert main(["graph", "diagrams/lib/reference.yaml", "-o", str(out),
                  "--engine", "matplotlib"]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("name", ["qd_star", "torque_passive", "error_augmentation"])
+def test_a_library_subsystem_with_open_shapes_draws_alone(tmp_path, capsys, name):
+    """Its blocks take their shapes from the parent: drawn with their real port names, the
+    file's ports as the inputs/outputs boxes, and no made-up shape on the open edges."""
+    import yaml
+    path = f"diagrams/lib/{name}.yaml"
+    doc = yaml.safe_load(open(path))
+    out = tmp_path / f"{name}.svg"
+    assert main(["graph", path, "-o", str(out), "--engine", "matplotlib"]) == 0
+    assert capsys.readouterr().out == (f"wrote {out} ({len(doc['blocks'])} blocks, "
+                                       "layout: matplotlib)\n")
+    from fwdstep.drawing import diagram_for_drawing, subsystem_ports
+    d = diagram_for_drawing(path)
+    pic = build_picture(d)
+    subsystem_ports(pic, path, d)
+    assert pic.boxes["inputs"].outputs == list(doc["ports"]["inputs"])
+    assert pic.boxes["outputs"].inputs == list(doc["ports"]["outputs"])
+    edges = {e[:4]: e[4] for e in pic.edges}
+    for conn in doc["connections"]:                      # every connection, real port names
+        (sb, sp), (db, dp) = (side.strip().rsplit(".", 1) for side in conn.split("->"))
+        assert (sb, sp, db, dp) in edges, conn
+    products = [b for b, spec in doc["blocks"].items() if spec["type"] == "Product"]
+    assert products and all(pic.boxes[b].inputs == ["a", "b"] for b in products)
+    assert all(e[4] == "" for e in pic.edges if e[0] in products or e[2] in products)

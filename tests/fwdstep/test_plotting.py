@@ -115,6 +115,13 @@ def test_a_plant_names_its_outputs_by_default():
     assert plain.unit == "rad/s"
 
 
+def test_a_point_mass_position_is_in_metres_per_axis():
+    d = fwdstep.load_diagram("diagrams/theorem2_pointmass.yaml")
+    q, qdot = signal_info(d, "plant.q"), signal_info(d, "plant.qdot")
+    assert (q.label, q.unit, q.components) == ("$q$", "m", ("axis 1", "axis 2"))
+    assert (qdot.unit, qdot.components) == ("m/s", ("axis 1", "axis 2"))
+
+
 def test_twelve_traces_are_all_drawn_in_distinct_colours_and_named(tmp_path):
     r = _run(tmp_path, MANY.format(description="Twelve modes."))
     ax = result_figures(r)["modes"].axes[0]
