@@ -264,16 +264,16 @@ def test_corpus_is_complete():
 @pytest.mark.parametrize("stem, cls, line, message", CASES, ids=[c[0] for c in CASES])
 def test_bad_diagram_message(stem, cls, line, message):
     path = bad_path(stem)
-    t0 = time.perf_counter()
+    t0 = time.process_time()        # CPU time: a loaded CI machine stretches wall time
     with pytest.raises(DiagramError) as info:
         fwdstep.load_diagram(path)
-    elapsed = time.perf_counter() - t0
+    elapsed = time.process_time() - t0
     assert type(info.value) is cls
     expected = message.replace("{dir}", BAD)
     assert str(info.value) == f"{path}:{line}: {expected}"
     assert "\n" not in str(info.value)
     # absurd sizes (10^9 states, eye(10000), 10**10**10, alias bombs) are refused at once
-    assert elapsed < 1.0, f"{stem} took {elapsed:.2f} s to refuse"
+    assert elapsed < 1.0, f"{stem} took {elapsed:.2f} s of CPU to refuse"
 
 
 @pytest.mark.parametrize("stem", CORPUS)

@@ -143,10 +143,10 @@ def test_calls_are_refused_before_anything_is_evaluated(monkeypatch):
     ("[1, [2, 3]]", "builds a list that is not a rectangular array of numbers"),
 ], ids=lambda x: x[:30])
 def test_huge_or_undefined_results_are_refused_quickly(src, message):
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     with pytest.raises(ExpressionError) as info:
         evaluate(src, NS, "p")
-    assert time.perf_counter() - t0 < 0.1
+    assert time.process_time() - t0 < 0.5       # CPU seconds
     shown = src if len(src) <= 100 else src[:97] + "..."
     assert str(info.value) == f"p: expression '{shown}' {message}"
 

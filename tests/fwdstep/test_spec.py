@@ -59,9 +59,9 @@ def test_a_chain_of_3000_parameters_resolves_in_linear_time(tmp_path):
     path = tmp_path / "chain.yaml"
     path.write_text("parameters:\n" + "\n".join(lines) +
                     "\nblocks:\n  g: {type: Gain, gain: p0}\n")
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     spec = load_spec(str(path))
-    elapsed = time.perf_counter() - t0
+    elapsed = time.process_time() - t0
     assert spec.parameters["p0"] == n - 1
     assert spec.blocks[0].params["gain"] == n - 1
     assert elapsed < 5.0, f"{elapsed:.1f} s (the quadratic resolver took minutes)"

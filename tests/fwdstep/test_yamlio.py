@@ -78,11 +78,11 @@ def billion_laughs(levels: int) -> str:
 @pytest.mark.parametrize("levels", [6, 9, 30])
 def test_billion_laughs_is_refused_quickly(levels):
     text = billion_laughs(levels)        # 10**levels strings once expanded
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     with pytest.raises(YamlError) as info:
         parse_yaml_text(text, "bomb.yaml")
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 0.2, f"took {elapsed:.3f} s"
+    elapsed = time.process_time() - t0
+    assert elapsed < 0.5, f"took {elapsed:.3f} s of CPU"
     # the line of the first top-level entry whose expansion passes the limit
     assert str(info.value) == ("bomb.yaml:6: the document expands to more than 200000 nodes "
                                "through aliases (&anchor/*alias); refused")
@@ -104,11 +104,11 @@ def test_recursive_alias_is_refused():
     ("".join("  " * i + "a:\n" for i in range(200)) + "  " * 200 + "1\n", 64),
 ], ids=["flow-list", "flow-map", "block-map"])
 def test_deep_nesting_is_refused(text, line):
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     with pytest.raises(YamlError) as info:
         parse_yaml_text(text, "deep.yaml")
     assert str(info.value) == f"deep.yaml:{line}: the document is nested more than 64 levels deep"
-    assert time.perf_counter() - t0 < 0.2
+    assert time.process_time() - t0 < 0.5       # CPU seconds
 
 
 def test_file_size_limit(tmp_path):
@@ -116,10 +116,10 @@ def test_file_size_limit(tmp_path):
     path.write_text("description: |\n" + ("  " + "x" * 98 + "\n") * 10486)
     size = path.stat().st_size
     assert size > yamlio.MAX_FILE_BYTES
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     with pytest.raises(YamlError) as info:
         read_yaml_file(str(path))
-    assert time.perf_counter() - t0 < 0.1
+    assert time.process_time() - t0 < 0.5       # CPU seconds
     assert str(info.value) == (f"{path}: the file is {size} bytes; diagrams are limited to "
                                "1048576 bytes")
 
