@@ -132,7 +132,9 @@ def _add_results_commands(sub, run) -> None:
     cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "
                                          "differences and a metrics table")
     cmp.add_argument("runs", nargs="+", metavar="RUN_DIR",
-                     help="run directories (of fwdstep run); DIR@K is variant K of a batch")
+                     help="run directories (of fwdstep run) or sweep directories (of "
+                          "fwdstep sweep: every saved variant); DIR@K is variant K of a batch "
+                          "or sweep, DIR@3,7 variants 3 and 7")
     cmp.add_argument("-o", "--outdir", default=None,
                      help="where compare.png and compare.csv go (default: out/compare)")
     cmp.add_argument("--signal", action="append", default=[], metavar="BLOCK.PORT",

@@ -11,6 +11,10 @@ Command line: ``fwdstep compare RUN_A RUN_B [...] [-o DIR] [--signal S ...]``.
 Differences are taken against the first run, on its time grid (linear interpolation when the
 other run was recorded at other times; outside the other run's time span they are NaN, never
 extrapolated).  A batch result counts as one run per variant: ``DIR@3`` is variant 3.
+A sweep directory (``fwdstep sweep -o SWEEP``) counts as one run per variant whose signal was
+saved; ``SWEEP@3`` is its variant 3 (the row ``variant = 3`` of sweep.csv), ``SWEEP@3,7``
+variants 3 and 7.  A sweep keeps the diagram's error signal (``metrics: error:``) of each
+variant, under its real name, label and unit, so it also compares with a run of the diagram.
 """
 from __future__ import annotations
 
@@ -69,7 +73,8 @@ class Comparison:
 
 
 def open_run(source, label: str | None = None) -> list:
-    """Runs from a Result, a run directory, or ``DIR@k`` (variant k of a saved batch)."""
+    """Runs from a Result, a run directory, ``DIR@k`` (variant k of a saved batch), a sweep
+    directory (every variant whose signal was saved) or ``SWEEP@k`` / ``SWEEP@3,7``."""
     if isinstance(source, Result):
         r, name, variant = source, label or "run", None
     else:
@@ -78,9 +83,15 @@ def open_run(source, label: str | None = None) -> list:
         if "@" in text and not os.path.isdir(text):
             text, _, idx = text.rpartition("@")
             try:
-                variant = int(idx)
+                variant = [int(k) for k in idx.split(",")]
             except ValueError:
-                raise OutputError(f"'{source}': after '@' comes a variant number") from None
+                raise OutputError(f"'{source}': after '@' come variant numbers, e.g. "
+                                  f"{text}@3 or {text}@3,7") from None
+        if is_sweep(text):
+            return sweep_runs(text, variant, label)
+        if variant is not None and len(variant) > 1:
+            return [run for k in variant for run in open_run(f"{text}@{k}", label)]
+        variant = variant[0] if variant else None
         r = load_result(text)
         name = label or _short(text)
         if variant is not None and not 0 <= variant < r.batch:
@@ -88,6 +99,81 @@ def open_run(source, label: str | None = None) -> list:
     if variant is None and r.batch > 1:
         return [Run(f"{name}@{b}", r, b) for b in range(r.batch)]
     return [Run(name if variant is None else f"{name}@{variant}", r, variant)]
+
+
+def is_sweep(path: str) -> bool:
+    """A directory written by ``fwdstep sweep`` (sweep.csv and parts/, no result.npz)."""
+    from .sweep import CSV_FILE as SWEEP_CSV, PARTS_DIR
+    return (os.path.isdir(os.path.join(path, PARTS_DIR))
+            or os.path.isfile(os.path.join(path, SWEEP_CSV))) \
+        and not os.path.isfile(os.path.join(path, "result.npz"))
+
+
+def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None) -> list:
+    """The variants of a saved sweep as runs: the error signal under its real name, with the
+    diagram's label, unit and components (stored in ``parts/*.npz``), the variant's status and
+    metrics; legend entries say which parameter values each variant had.  ``wanted``: variant
+    numbers (default: every variant whose signal was saved)."""
+    import glob
+    import json
+    from .sweep import METRICS, PARTS_DIR
+    name = label or _short(outdir)
+    found: dict = {}
+    for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                part = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as exc:
+            raise OutputError(f"cannot read {path}: {exc}") from None
+        for k, i in enumerate(part["indices"].tolist()):
+            found[i] = (part, k)
+    if not found:
+        raise OutputError(f"{outdir} holds no finished variant (parts/ is empty or missing)")
+    n = max(found) + 1
+    if wanted is None:
+        wanted = [i for i in sorted(found) if _has_signal(*found[i])]
+        if not wanted:
+            raise OutputError(f"{outdir}: no variant's signal was saved (the sweep ran with "
+                              "--no-signals); run it again without --no-signals")
+    runs = []
+    for i in wanted:
+        if i not in found:
+            raise OutputError(f"{outdir} has no finished variant {i}" + (
+                f" (its variants are 0..{n - 1}; resume the sweep to finish it)"
+                if i < n else f"; its variants are 0..{n - 1}"))
+        part, k = found[i]
+        if not _has_signal(part, k):
+            raise OutputError(f"{outdir}: the signal of variant {i} was not saved (the sweep "
+                              "ran with --no-signals, which keeps only the plotted variants')")
+        info = json.loads(str(part["signal_info"])) if "signal_info" in part else \
+            {"name": "e", "real": "e"}                  # a sweep saved before names were kept
+        t, e = part["t"], part["e"][:, k]
+        rows = np.isfinite(e.reshape(len(t), -1)).any(axis=1)
+        last = int(np.nonzero(rows)[0][-1]) + 1 if rows.any() else 0
+        status = str(part["status"][k])
+        r = Result(t[:last], {info["real"]: e[:last, None]}, status=status,
+                   message=str(part["message"][k]))
+        r.signal_labels = {info["real"]: {key: info.get(key) for key in
+                                          ("label", "unit", "components")}}
+        r.aliases = {info["name"]: info["real"]}
+        metrics = ({m: float(x) for m, x in zip(METRICS, part["metrics"][k])}
+                   if status == "ok" else {})
+        r.stored = {"metrics": metrics, "metric_signal": info["name"]}
+        r.figure_panels, r.title, r.outdir = {}, "", outdir
+        values = json.loads(str(part["values"][k]))
+        shown = ", ".join(f"{key}={_value_text(v)}" for key, v in values.items())
+        runs.append(Run(f"{name}@{i}" + (f" ({shown})" if shown else ""), r))
+    return runs
+
+
+def _has_signal(part: dict, k: int) -> bool:
+    return "e" in part and bool(part["has_signal"][k])
+
+
+def _value_text(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
 
 
 def _short(path: str) -> str:
@@ -237,8 +323,9 @@ def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=
     except FwdstepError as exc:
         print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return 2
-    widths = {c_: max(len(c_), 10) for c_ in c.table[0]}
     cols = list(c.table[0])
+    widths = {col: max([len(col), 10] + [len(_fmt(row.get(col))) for row in c.table])
+              for col in cols}
     print("  ".join(f"{col:>{widths[col]}}" for col in cols))
     for row in c.table:
         print("  ".join(f"{_fmt(row.get(col)):>{widths[col]}}" for col in cols))

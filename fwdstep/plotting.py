@@ -97,6 +97,24 @@ def signal_info(source, name: str) -> SignalInfo:
                       tuple(meta["components"] or ()))
 
 
+class _SpecView:
+    """A loaded spec and its built blocks, seen as ``signal_info`` sees a compiled diagram."""
+
+    def __init__(self, spec, blocks):
+        self.spec, self.blocks = spec, blocks
+
+    def resolve(self, name: str) -> str:
+        return self.spec.aliases.get(name, name)
+
+
+def signal_record(spec, blocks, name: str) -> dict:
+    """What a saved sweep keeps of signal ``name`` so that figures and ``fwdstep compare``
+    name it as a run does: its name, the block port it resolves to, label, unit, components."""
+    info = signal_info(_SpecView(spec, blocks), name)
+    return {"name": name, "real": spec.aliases.get(name, name), "label": info.label,
+            "unit": info.unit, "components": list(info.components) or None}
+
+
 def signal_labels(result: Result) -> dict:
     """Every recorded signal's label/unit/components, as stored with a saved result."""
     out = {}

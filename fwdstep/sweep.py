@@ -120,6 +120,7 @@ class SweepResult:
     parts: list = field(default_factory=list)      # in-memory batch outcomes (no outdir)
     outdir: str | None = None                      # where the parts were written
     keep_signals: bool = False                     # parts hold every variant's error signal
+    signal_info: dict = field(default_factory=dict)  # the error signal's name, label, unit
 
     def counts(self) -> dict:
         out: dict = {}
@@ -213,14 +214,22 @@ class BatchJob:
         return self.blocks
 
 
-def settings_key(spec) -> tuple:
+def settings_key(spec, memo: dict | None = None) -> tuple:
     """Everything in a diagram spec that may change a variant's numbers besides its blocks:
     every field of the spec (the simulation settings object whole, log, metrics, connections,
     ...) except the parameters (which reach the numbers only through the blocks) and the
     blocks themselves (``structure_signature``).  Fields are read, never listed, so settings
-    added later are included."""
+    added later are included.  ``memo`` (kept by the caller while all the specs are alive)
+    reuses the key of fields that are the very same objects as an earlier spec's (variants
+    derived from one load share their connections, log, ...)."""
     rest = [(f.name, getattr(spec, f.name)) for f in dataclasses.fields(spec)
              if f.name not in ("parameters", "blocks")]
+    if memo is not None:
+        shared = tuple(id(value) for name, value in rest if name != "simulation")
+        if shared not in memo:
+            memo[shared] = settings_key(dataclasses.replace(
+                spec, simulation=None, parameters={}, blocks=[]))
+        return memo[shared] + settings_key(spec.simulation)
     try:            # equal bytes: equal content (unequal bytes only split a batch further)
         return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)
     except (pickle.PicklingError, TypeError, AttributeError):
@@ -284,11 +293,12 @@ def plan_batches(specs, blocks, metric, *, sequential=False, workers=1,
                  max_memory=DEFAULT_MAX_MEMORY, batch_size=None) -> list:
     """Lists of variant indices, one per batch (see the module docstring)."""
     groups: dict = {}
+    memo: dict = {}
     for i, (spec, blks) in enumerate(zip(specs, blocks)):
         if sequential or not batchable(spec):
             groups[("alone", i)] = [i]
             continue
-        groups.setdefault((settings_key(spec), structure_signature(blks)), []).append(i)
+        groups.setdefault((settings_key(spec, memo), structure_signature(blks)), []).append(i)
     per_batch = max_memory // max(1, workers)
     out = []
     for members in groups.values():
@@ -337,6 +347,11 @@ def run_job(job: BatchJob) -> dict:
             if o.get("e") is not None:
                 e[:len(o["t"]), k] = o["e"]
         part.update(t=t, e=e, has_signal=np.array([o.get("e") is not None for o in outcomes]))
+    if job.metric is not None:     # e's real name, label and unit (figures, fwdstep compare)
+        from .plotting import signal_record
+        record = signal_record(job.specs[0], job.variant_blocks()[0], job.metric)
+        part.update(signal_info=np.array(json.dumps(record)),
+                    diagram=np.array(str(job.specs[0].file or "")))
     return part
 
 
@@ -430,8 +445,8 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     specs, blocks = [], []
     for values in all_values:
         try:
-            spec = loader.spec(values)
-            blocks.extend(instantiate_variants([spec], loader.made))
+            spec, built = loader.load(values)
+            blocks.append(built)
         except DiagramError as exc:
             shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
             raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
@@ -522,6 +537,8 @@ def _store(result: SweepResult, part: dict, outdir: str | None) -> None:
 
 
 def _absorb(result: SweepResult, part: dict) -> None:
+    if "signal_info" in part and not result.signal_info:
+        result.signal_info = json.loads(str(part["signal_info"]))
     for k, i in enumerate(part["indices"].tolist()):
         v = result.variants[i]
         v.batch = int(part["batch"][k])
@@ -602,8 +619,14 @@ def _numeric(values: list):
 
 def plot_sweep(result: SweepResult, outdir: str) -> str:
     """sweep.png: the tail metric against each swept parameter, and |e|(t) traces."""
-    from .plotting import figure_bytes, finish_figure, line_colors, new_figure, place_legend
+    from .plotting import (SignalInfo, figure_bytes, finish_figure, line_colors, new_figure,
+                           place_legend, safe_label)
 
+    rec = result.signal_info or {}     # the diagram's label and unit, as the run figures
+    info = SignalInfo(str(result.metric_signal), safe_label(rec.get("label") or
+                                                            str(result.metric_signal)),
+                      rec.get("unit") or "")
+    norm_label = f"|{info.label}|"
     ok = [v for v in result.variants if v.metrics]
     n_panels = len(result.names) + 1
     # the run figures' style (fwdstep.plotting): no pyplot, the caller's backend untouched
@@ -626,8 +649,9 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
                 line, = ax.plot(x[sel][order], y[order], style if len(series) <= 10 else "",
                                 marker=marker, ms=4 if len(series) <= 10 else 2, lw=1,
                                 color=color,
-                                label=f"{'max |e| over tail' if style == '-' else 'final |e|'}"
-                                      f"{', ' + label if label else ''}")
+                                label=(f"max {norm_label} over tail" if style == "-" else
+                                       f"final {norm_label}")
+                                      + (f", {label}" if label else ""))
                 color = line.get_color()
         diverged = [v for v in result.variants if v.status == "diverged"]
         if diverged:
@@ -637,7 +661,7 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
                 ax.plot(xd, np.full(len(xd), top), "rx", label="diverged")
         ax.set_yscale("log")
         ax.set_xlabel(name)
-        ax.set_ylabel(f"|{result.metric_signal}|")
+        ax.set_ylabel(info.axis_label(absolute=True))
         ax.grid(True, alpha=0.3, which="both")
         place_legend(ax)
     ax = axes[-1]
@@ -646,7 +670,7 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
         ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color,
                     label=_describe(result.variants[i].values, result.names))
     ax.set_xlabel("$t$ [s]")
-    ax.set_ylabel(f"|{result.metric_signal}|(t)")
+    ax.set_ylabel(f"{norm_label}(t)" + (f" [{info.unit}]" if info.unit else ""))
     ax.grid(True, alpha=0.3, which="both")
     place_legend(ax)
     if 0 < len(traces) < len(result.variants):          # say so: never a silent selection

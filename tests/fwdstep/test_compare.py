@@ -133,3 +133,46 @@ def test_a_loaded_result_plots_like_the_fresh_one(tmp_path):
     assert np.array_equal(b.axes[0].lines[1].get_ydata(), fresh["x.y"][:, 1])
     page = back._repr_html_()
     assert "<table>" in page and "ok" in page and f"{fresh.metrics()['final_abs_error']:.3e}" in page
+
+
+def test_sweep_variants_compare_by_their_real_names_and_equal_a_run(tmp_path, capsys,
+                                                                   monkeypatch):
+    """A sweep directory's variants (SWEEP@k) overlay under the signal's real name, label and
+    unit; variant g = -2 equals a separate run with g = -2; differences are analytic."""
+    import fwdstep.plotting
+    path = tmp_path / "decay.yaml"
+    path.write_text(DECAY.format(t_final=2, step=0.01))
+    sweep = tmp_path / "sweep"
+    figures = []
+    real_bytes = fwdstep.plotting.figure_bytes
+    monkeypatch.setattr(fwdstep.plotting, "figure_bytes",
+                        lambda fig, fmt="png": figures.append(fig) or real_bytes(fig, fmt))
+    assert main(["sweep", str(path), "--grid", "g=-1,-2", "-o", str(sweep), "-q",
+                 "--workers", "1"]) == 0
+    # the sweep figure names the error by the diagram's label and unit, not |x.y|
+    (metric_ax, trace_ax) = figures[-1].axes[:2]
+    assert metric_ax.get_ylabel() == "|$x$| [m]" and trace_ax.get_ylabel() == "|$x$|(t) [m]"
+    b, _ = _saved(tmp_path, "b", -2.0)
+    c = compare([f"{sweep}@0,1", b])
+    assert c.signals == ["x.y"]
+    assert [r.label for r in c.runs] == ["sweep@0 (g=-1)", "sweep@1 (g=-2)", "b"]
+    t = c.runs[0].result.t
+    exact = np.outer(np.exp(-2 * t) - np.exp(-t), X0)
+    assert np.max(np.abs(c.differences["x.y"][0] - exact)) < 1e-8
+    assert np.max(np.abs(c.differences["x.y"][1] - exact)) < 1e-8
+    assert np.array_equal(c.runs[1].data("x.y"), load_result(b)["x.y"])   # the same numbers
+    over, diff = c.figure.axes[:2]
+    assert over.get_ylabel() == "$x$ [m]"
+    assert [t_.get_text() for t_ in diff.get_legend().get_texts()][:2] == [
+        "sweep@1 (g=-2) − sweep@0 (g=-1), first", "sweep@1 (g=-2) − sweep@0 (g=-1), second"]
+    assert c.table[1]["final_abs_error"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4),
+                                                          rel=1e-6)
+    # the whole sweep directory: every variant; a variant that is not there: one line, exit 2
+    assert [r.label for r in compare([str(sweep)]).runs] == ["sweep@0 (g=-1)", "sweep@1 (g=-2)"]
+    capsys.readouterr()
+    assert main(["compare", f"{sweep}@0,5", "-o", str(tmp_path / "cmp")]) == 2
+    assert capsys.readouterr().err == (f"fwdstep: {sweep} has no finished variant 5; its "
+                                       "variants are 0..1\n")
+    assert main(["compare", f"{sweep}@0,x"]) == 2
+    assert capsys.readouterr().err == (f"fwdstep: '{sweep}@0,x': after '@' come variant "
+                                       f"numbers, e.g. {sweep}@3 or {sweep}@3,7\n")
