@@ -79,12 +79,14 @@ class _Source:
 
 
 def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple = (),
-                  solver: str | None = None) -> Program:
+                  solver: str | None = None, probe=None) -> Program:
     """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows.
     ``alloc(shape)`` makes each log array (default: in memory, NaN-filled;
     ``fwdstep.budgets.disk_allocator`` streams the log to disk).  ``sampled``: the signal
     indices ``sample_signals(ts)`` returns (inputs of discrete blocks, fwdstep.events).
-    ``solver``: the tableau, if not ``simulation.solver`` (fwdstep.ivp uses stage 1 only)."""
+    ``solver``: the tableau, if not ``simulation.solver`` (fwdstep.ivp uses stage 1 only).
+    ``probe``: (signal indices, (B, total size) buffer): every record also copies those
+    signals into the buffer (``fwdstep.finite`` checks the unrecorded outputs there)."""
     cfg = d.spec.simulation
     tab = TABLEAUX[solver or cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -240,6 +242,13 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                np.full((n_rows, B) + shapes[idx], np.nan))
         logs.append(arr)
         record.append(f"{src.const('log', arr)}[row] = {read(idx)}")
+    if probe is not None:
+        c = 0
+        for idx in probe[0]:
+            n = int(np.prod(shapes[idx], dtype=np.int64))
+            view = _view(probe[1][:, c:c + n], (B,) + shapes[idx])
+            record.append(f"{src.const('probe', view)}[...] = {read(idx)}")
+            c += n
 
     # ---------------------------------------------------------------- functions
     def function(header: str, body: list) -> None:

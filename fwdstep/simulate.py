@@ -40,6 +40,7 @@ from .errors import BlockRuntimeError, ConfigError, DivergenceError, SimulationE
 from .program import build_program
 from .result import Result
 from .events import apply_updates, plan_events
+from . import finite
 from .solvers import IVP_METHODS, TABLEAUX, step_plan
 
 
@@ -223,7 +224,10 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     if log_dir is not None:
         from .budgets import disk_allocator
         alloc = disk_allocator(log_dir)
-    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled)
+    unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.finite)
+    probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
+    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled, probe=probe)
+    check = finite.OutputCheck(d, *probe) if probe else None
     x = prog.xn
     x[...] = d.x0
     first, first_record, rest = prog.first, prog.first_record, prog.rest
@@ -282,13 +286,22 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                             message = _divergence_message(d, x, bound, t + h)
                             break
                         x[~alive] = 0.0      # frozen variants: keep the others finite, going
+                if check is not None and n % every == 0:     # the outputs just recorded
+                    bad = check.failed(alive)
+                    if bad is not None:
+                        stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check,
+                                                    bad, alive, died_at)
+                        if stop is not None:
+                            row, status, message, x = stop
+                            break
+                        x[~alive] = 0.0
                 if progress is not None and n % 2048 == 0:
                     now = _time.perf_counter()
                     if now >= next_report:
                         progress((n + 1) / n_steps)
                         next_report = now + 1.0
                 if B == 1 and n % 8192 == 8191:    # an output gone NaN/inf: stop early,
-                    if not _rows_finite(prog.logs, checked, row):    # _finish says where
+                    if not finite.rows_finite(prog.logs, checked, row):  # _finish: where
                         break
                     checked = row
             else:
@@ -301,6 +314,12 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                         apply_updates(end, max(t, end.hi), x, prog.sample_signals)
                     prog.final_ts(t, max(t, end.hi), row)
                 row += 1
+                bad = check.failed(alive) if check is not None else None
+                if bad is not None:
+                    stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check, bad,
+                                                alive, died_at)
+                    if stop is not None:
+                        row, status, message, x = stop
         except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
             status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
@@ -397,7 +416,7 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
     B, N = d.batch, d.n_states
     h, bound = d.spec.simulation.step, d.spec.simulation.bound
     if status == "ok":                  # a diverged state stays the reported cause
-        bad = _first_non_finite_output(d, t_log, logs, row, alive, died_at)
+        bad = finite.first_non_finite_output(d, t_log, logs, row, alive, died_at)
         if bad is not None:
             row, status, message, x = bad
     if B > 1 and (~alive).any() and status == "ok":
@@ -422,61 +441,6 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
         error.result = result
         raise error
     return result
-
-
-def _rows_finite(logs, lo: int, hi: int) -> bool:
-    return all(np.isfinite(L[lo:hi]).all() for L in logs)
-
-
-def _first_non_finite_output(d: CompiledDiagram, t_log, logs, row, alive, died_at):
-    """The first recorded row where a block output is NaN or inf while the states were
-    finite (a Gain of 1e308 on a large signal: no state is involved, so the bound check
-    never sees it).  One vectorised scan of the log, O(log size).  For a single run returns
-    (rows to keep, "diverged", message, blamed block name) or None; in a batch the variant
-    is marked diverged at that time (``alive``/``died_at`` updated in place) and None is
-    returned unless every variant is gone.  Blamed is the earliest signal in evaluation
-    order that is not finite at that row: with the default log (every signal) that is the
-    block that produced it."""
-    if row == 0 or not logs:
-        return None
-    B = d.batch
-    first = np.full(B, row)                   # first non-finite row per variant
-    for L in logs:
-        flat = L[:row].reshape(row, B, -1)
-        bad = ~np.isfinite(flat).all(axis=2)  # (rows, B)
-        hit = bad.any(axis=0)
-        if hit.any():
-            first = np.minimum(first, np.where(hit, bad.argmax(axis=0), row))
-    if (first >= row).all():
-        return None
-    order = {st.block.name: k for k, st in enumerate(d.schedule)}
-    found = []
-    for b in np.flatnonzero(first < row):
-        r = int(first[b])
-        if not np.isnan(died_at[b]) and t_log[r] >= died_at[b]:
-            continue                          # after this variant's state diverged
-        culprits = [(order.get(name.rsplit(".", 1)[0], len(order)), name, L[r, b])
-                    for name, L in zip(d.logged, logs) if not np.isfinite(L[r, b]).all()]
-        _, name, value = min(culprits, key=lambda c: c[0])
-        found.append((r, b, name, value))
-    if not found:
-        return None
-    r, b, name, value = min(found)
-    block, port = name.rsplit(".", 1)
-    step = next((st for st in d.schedule if st.block.name == block), None)
-    flat = np.asarray(value, dtype=float).reshape(-1)
-    k = int(np.argmax(~np.isfinite(flat)))
-    where = f"[{k}]" if flat.size > 1 else ""
-    who = f"block '{block}' ({step.block.type_name})" if step is not None else f"'{block}'"
-    variant = f" (variant {b})" if B > 1 else ""
-    message = (f"simulation diverged at t = {t_log[r]:.6g}: {who} output '{port}'{where} = "
-               f"{flat[k]:.6g} is not finite{variant}; results up to that time are kept")
-    for r_b, b_b, _, _ in found:
-        died_at[b_b] = t_log[r_b]
-        alive[b_b] = False
-    if alive.any():
-        return None
-    return (r + 1 if B == 1 else row), "diverged", message, block
 
 
 def _divergence_message(d: CompiledDiagram, x, bound, t) -> str:

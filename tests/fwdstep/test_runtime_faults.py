@@ -392,3 +392,72 @@ def test_a_non_finite_output_stops_a_long_run_early(tmp_path):
                                       "output 'y'[0] = inf is not finite")
     assert info.value.result.steps < 1798 + 8192
     assert info.value.result.t[-1] == pytest.approx(0.1798)
+
+
+# ------------------------------------------------------------------ outputs that are not recorded
+# big.y = g * 1e150 t overflows for g = 1e200 from the first step (t = 0.01); it feeds a
+# Saturation (inf -> 1), so the integrator behind it stays finite and bounded: no state check
+# can see it, and neither big nor sat is recorded
+UNLOGGED = """\
+parameters:
+  g: 1
+blocks:
+  src: {type: Constant, value: [1.0e150, 1]}
+  ramp: {type: Integrator, shape: [2]}
+  big: {type: Gain, gain: g, shape: [2]}
+  sat: {type: Saturation, lower: -1, upper: 1, shape: [2]}
+  held: {type: Integrator, shape: [2]}
+  one: {type: Constant, value: [1, 2]}
+  slope: {type: Gain, gain: g, shape: [2]}
+  tracked: {type: Integrator, shape: [2]}
+connections:
+  - src.y -> ramp.u
+  - ramp.y -> big.u
+  - big.y -> sat.u
+  - sat.y -> held.u
+  - one.y -> slope.u
+  - slope.y -> tracked.u
+simulation: {t_final: 1, step: 0.01, bound: 1.0e300}
+log: [tracked.y]
+metrics: {error: tracked.y}
+"""
+
+
+def test_an_unrecorded_output_that_overflows_stops_the_run(tmp_path, capsys):
+    path = write(tmp_path, UNLOGGED.replace("g: 1\n", "g: 1.0e200\n"))
+    d = fwdstep.load_diagram(path)
+    assert "big.y" not in d.logged and "sat.y" not in d.logged
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(d)
+    assert str(info.value) == ("simulation diverged at t = 0.01: block 'big' (Gain) output "
+                               "'y'[0] = inf is not finite; results up to that time are kept")
+    assert info.value.block == "big" and info.value.result.status == "diverged"
+    assert info.value.result.t[-1] == pytest.approx(0.01)
+    outdir = tmp_path / "out"
+    assert cli.main(["run", path, "-o", str(outdir), "-q", "--no-plots"]) == 3
+    assert capsys.readouterr().err == f"fwdstep: {info.value}\n"
+    arrays, summary = read_outputs(outdir)
+    assert summary["status"] == "diverged" and arrays["t"][-1] == pytest.approx(0.01)
+
+
+def test_an_unrecorded_output_that_stays_finite_is_ok(tmp_path):
+    # the same diagram with g = 1: every output finite, tracked.y = g (1, 2) t exactly
+    r = fwdstep.simulate(fwdstep.load_diagram(write(tmp_path, UNLOGGED)))
+    assert r.status == "ok"
+    np.testing.assert_allclose(r["tracked.y"][-1], [1.0, 2.0], rtol=1e-12)
+
+
+def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_path):
+    from fwdstep.result import error_metrics
+    from fwdstep.sweep import run_sweep
+    path = write(tmp_path, UNLOGGED)
+    res = run_sweep(path, grid={"g": [1.0, 1.0e200, 3.0]}, workers=1)
+    assert [size for size, _ in res.batches] == [3]                   # one batch of three
+    assert [(v.status, v.diverged_at) for v in res.variants] == [
+        ("ok", None), ("diverged", 0.01), ("ok", None)]
+    for v in (res.variants[0], res.variants[2]):                      # as run one by one
+        r = fwdstep.simulate(fwdstep.load_diagram(path, {"g": v.values["g"]}))
+        alone = error_metrics(r.t, r["tracked.y"], 0.2)
+        assert v.metrics == {m: alone[m] for m in v.metrics} and len(v.metrics) == 4
+        # |tracked.y(1)| = |g (1, 2)| = sqrt(5) g
+        assert alone["final_abs_error"] == pytest.approx(5 ** 0.5 * v.values["g"], rel=1e-12)
