@@ -202,6 +202,7 @@ class BatchJob:
     keep_signals: bool
     traces: frozenset
     values: list                  # the swept values of each variant (for the parts)
+    max_log_bytes: int | None = None   # fwdstep.simulate refuses a larger log (--max-memory)
 
     def __getstate__(self) -> dict:
         """Sent to a worker without the blocks (they may hold unpicklable closures); the
@@ -367,9 +368,12 @@ def _run_members(job: BatchJob, members: list) -> list:
     metric = job.metric
     d.logged = [d.resolve(metric)] if metric is not None else []
     try:
-        r = simulate(d)
+        r = simulate(d, max_log_bytes=job.max_log_bytes)
     except DivergenceError as exc:
         r = exc.result
+    except ConfigError as exc:           # over the log budget (plan_batches keeps it under)
+        return [{"status": "error", "message": str(exc), "diverged_at": None,
+                 "metrics": {}} for _ in members]
     except SimulationInterrupted:
         raise KeyboardInterrupt from None
     except BlockRuntimeError as exc:
@@ -491,7 +495,7 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
         if todo:
             jobs.append(BatchJob(len(jobs), todo, [specs[i] for i in todo],
                                  [blocks[i] for i in todo], metric, keep_signals, trace_ids,
-                                 [all_values[i] for i in todo]))
+                                 [all_values[i] for i in todo], parse_size(max_memory)))
     if done:
         first = max((v.batch for v in table if v.index in done), default=-1) + 1
         for job in jobs:

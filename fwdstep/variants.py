@@ -24,6 +24,7 @@ error message.  The blocks built for the shape check are kept in ``made`` (the c
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 
@@ -31,6 +32,7 @@ from .compiler import _value_key
 from .errors import DiagramError
 from .expressions import names_in
 from .graph import _instantiate_one
+from .search import SearchPath
 from .spec import (Budget, LineDict, _Level, _line, _read_document, _simulation, _strings_in,
                    load_spec, resolve_parameters, split_overrides)
 
@@ -45,6 +47,7 @@ class VariantSpecs:
         self.cache = {} if cache is None else cache
         self.base = load_spec(self.path, self.overrides, cache=self.cache)
         self.made: dict = {}                      # instantiate_variants' cache of built blocks
+        self._base_blocks: dict = {}
         self.derived = 0                          # how many specs were derived (not loaded)
         self._fast = False
         try:
@@ -85,6 +88,10 @@ class VariantSpecs:
                     for text in _strings_in(value):
                         mentioned |= names_in(text)
             self.block_names[name] = mentioned
+        self.sim_names = set()
+        for text in _strings_in(list((doc.get("simulation") or {}).values())):
+            self.sim_names |= names_in(text)
+        self.search = SearchPath(self.path)
         self.tail_names = set()
         metrics = doc.get("metrics")
         if isinstance(metrics, dict) and "tail" in metrics:
@@ -99,7 +106,7 @@ class VariantSpecs:
 
     def _level(self, namespace: dict) -> _Level:
         return _Level(self.doc, self.path, namespace, "", stack=(os.path.realpath(self.path),),
-                      cache=self.cache, errors=[], budget=Budget())
+                      cache=self.cache, errors=[], budget=Budget(), search=self.search)
 
     def _build(self, level: _Level, name: str, paths: dict):
         sets = {tuple(path[1:]): value for path, value in paths.items() if path[0] == name}
@@ -109,15 +116,33 @@ class VariantSpecs:
     # ------------------------------------------------------------------ variants
     def spec(self, values: dict):
         """The spec of one variant (derived from the base when that is exact, else loaded)."""
+        return self.load(values, blocks=False)[0]
+
+    def load(self, values: dict, blocks: bool = True) -> tuple:
+        """(spec, its blocks or None): the blocks are built once per distinct entry (the
+        base's blocks for the entries a variant does not touch)."""
         if self._fast:
             try:
-                spec = self._derive(values)
+                derived = self._derive(values)
             except DiagramError:
-                spec = None
-            if spec is not None:
+                derived = None
+            if derived is not None:
                 self.derived += 1
-                return spec
-        return load_spec(self.path, {**self.overrides, **values}, cache=self.cache)
+                spec, rebuilt = derived
+                if not blocks:
+                    return spec, None
+                return spec, [self.block(k, entry) if k in rebuilt else self._base_block(k)
+                              for k, entry in enumerate(spec.blocks)]
+        spec = load_spec(self.path, {**self.overrides, **values}, cache=self.cache)
+        if not blocks:
+            return spec, None
+        from .compiler import instantiate_variants
+        return spec, instantiate_variants([spec], self.made)[0]
+
+    def _base_block(self, k: int):
+        if k not in self._base_blocks:
+            self._base_blocks[k] = self.block(k, self.base.blocks[k])
+        return self._base_blocks[k]
 
     def _derive(self, values: dict):
         base = self.base
@@ -139,11 +164,14 @@ class VariantSpecs:
                                 preset=preset, line=_line(self.doc, "parameters"),
                                 budget=Budget())
         ns = {k: ns[k] for k in base.parameters}     # the base's order
-        sim = _simulation(self._sim_doc({**self.base_sim, **vsim}), ns, self.path)
+        if vsim or affected & self.sim_names:
+            sim = _simulation(self._sim_doc({**self.base_sim, **vsim}), ns, self.path)
+        else:                                  # the same settings, its own object
+            sim = copy.copy(base.simulation)
         paths = {**self.base_paths, **vpaths}
         touched = {p[0] for p in vpaths}
         level = self._level(ns)
-        entries = []
+        entries, rebuilt = [], set()
         for k, entry in enumerate(base.blocks):
             if entry.name not in touched and not (self.block_names[entry.name] & affected):
                 entries.append(dataclasses.replace(entry, params=dict(entry.params)))
@@ -159,7 +187,8 @@ class VariantSpecs:
                     k, entry, new):
                 return None
             entries.append(new)
-        return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim)
+            rebuilt.add(k)
+        return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim), rebuilt
 
     def _sim_doc(self, sim_overrides: dict):
         if not sim_overrides:
