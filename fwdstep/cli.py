@@ -123,6 +123,8 @@ def _add_results_commands(sub, run) -> None:
     gr.add_argument("--engine", choices=("auto", "dot", "matplotlib"), default="auto",
                     help="layout: graphviz dot (default when installed) or matplotlib")
     gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
+    gr.add_argument("--force", action="store_true",
+                    help="replace the output file even when fwdstep did not write it")
     rep = sub.add_parser("report", help="one self-contained HTML page of a run or sweep "
                                         "directory: diagram, parameters, metrics, figures")
     rep.add_argument("run_dir", metavar="RUN_DIR",
@@ -147,7 +149,8 @@ def _results_command(args):
     """Exit code of graph/report/compare, or None for other commands."""
     if args.command == "graph":
         from fwdstep.drawing import cmd_graph
-        return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine)
+        return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine,
+                         args.force)
     if args.command == "run" and (args.figure_format or args.report):
         from fwdstep import commands
         code = commands.cmd_run(args.diagram, args.set, args.outdir, args.force,

@@ -356,8 +356,10 @@ def draw_layered(picture: Picture):
 
 
 # ---------------------------------------------------------------------------- entry points
-def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "auto") -> str:
-    """Write the picture of ``diagram`` to ``path`` (.svg, .png or .pdf); the engine used."""
+def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "auto",
+                 force: bool = False) -> str:
+    """Write the picture of ``diagram`` to ``path`` (.svg, .png or .pdf); the engine used.
+    An existing file that fwdstep did not write is replaced only with ``force``."""
     fmt = os.path.splitext(path)[1].lstrip(".").lower()
     if fmt not in FORMATS:
         raise OutputError(f"cannot draw to '{path}': the file name must end in "
@@ -377,20 +379,64 @@ def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "au
         buf = io.BytesIO()
         fig.savefig(buf, format=fmt, dpi=200)
         data = buf.getvalue()
-    _write(path, data)
+    _write(path, data, force)
     return engine
 
 
-def _write(path: str, data: bytes) -> None:
-    from .result import atomic_write
-    directory = os.path.dirname(os.path.abspath(path))
-    if os.path.isdir(path):
+def _write(path: str, data: bytes, force: bool = False) -> None:
+    """Put the picture in place as run outputs are (``fwdstep.outputs.OutputDir``: locked,
+    staged, listed in the directory's manifest.json).  A picture fwdstep drew there before is
+    replaced; any other file only with ``force``; a directory or a symbolic link never."""
+    from .errors import printable
+    from .outputs import MANIFEST_FILE, OutputDir, owned_files
+    directory, name = os.path.split(os.path.abspath(path))
+    if os.path.isdir(path) and not os.path.islink(path):
         raise OutputError(f"cannot write the picture to {path}: it is a directory")
+    if name == MANIFEST_FILE:
+        raise OutputError(f"cannot write the picture to {path}: fwdstep keeps its list of "
+                          f"written files under that name; choose another -o")
+    foreign = os.path.lexists(path) and name not in owned_files(directory)
+    if foreign and (os.path.islink(path) or not os.path.isfile(path)):
+        raise OutputError(f"refusing to replace {printable(path)}: it is "
+                          f"{'a symbolic link' if os.path.islink(path) else 'not a file'}; "
+                          "choose another file with -o")
+    if foreign and not force:
+        raise OutputError(f"refusing to replace {printable(path)}: fwdstep did not write it "
+                          "(pass --force to replace it, or choose another file with -o)")
+    manifest = os.path.join(directory, MANIFEST_FILE)
+    if os.path.lexists(manifest) and not _fwdstep_manifest(manifest):
+        raise OutputError(f"cannot write the picture into {printable(directory)}: its "
+                          f"{MANIFEST_FILE} was not written by fwdstep and would be replaced; "
+                          "choose another directory with -o")
+    import json
+    from .outputs import _describe
+    from .result import atomic_write
     try:
         os.makedirs(directory, exist_ok=True)
-        atomic_write(os.path.abspath(path), lambda fh: fh.write(data), binary=True)
-    except OSError as exc:
-        raise OutputError(f"cannot write the picture to {path}: {exc.strerror or exc}") from exc
+        # the directory's lock (as a run holds it), then the picture and the manifest that
+        # lists it, each replaced atomically; the user's directory itself is left in place
+        with OutputDir.lock_only(directory, force=True):
+            atomic_write(os.path.join(directory, name), lambda fh: fh.write(data),
+                         binary=True)
+            files = {}
+            if os.path.lexists(manifest):
+                with open(manifest, encoding="utf-8") as fh:
+                    files = json.load(fh).get("files") or {}
+            files[name] = _describe(os.path.join(directory, name))
+            text = json.dumps({"written_by": "fwdstep", "files": files}, indent=2)
+            atomic_write(manifest, lambda fh: fh.write(text))
+    except (OSError, ValueError) as exc:
+        raise OutputError(f"cannot write the picture to {path}: "
+                          f"{getattr(exc, 'strerror', None) or exc}") from exc
+
+
+def _fwdstep_manifest(path: str) -> bool:
+    import json
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.loads(fh.read(1 << 20)).get("written_by") == "fwdstep"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 class _Unwired:
@@ -481,7 +527,7 @@ def subsystem_ports(picture: Picture, path: str, diagram) -> None:
 
 
 def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None = None,
-              engine: str = "auto") -> int:
+              engine: str = "auto", force: bool = False) -> int:
     """``fwdstep graph DIAGRAM -o FILE.svg``: exit 0, or 2 with one line on stderr."""
     import sys
     from .errors import FwdstepError, one_line
@@ -491,7 +537,7 @@ def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None
         diagram = diagram_for_drawing(path, overrides)
         output = output or os.path.join(
             "out", os.path.splitext(os.path.basename(path))[0], "diagram.svg")
-        used = draw_diagram(diagram, output, depth, engine)
+        used = draw_diagram(diagram, output, depth, engine, force)
     except FwdstepError as exc:
         print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return 2

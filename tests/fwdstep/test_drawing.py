@@ -154,3 +154,36 @@ def test_a_library_subsystem_with_open_shapes_draws_alone(tmp_path, capsys, name
     products = [b for b, spec in doc["blocks"].items() if spec["type"] == "Product"]
     assert products and all(pic.boxes[b].inputs == ["a", "b"] for b in products)
     assert all(e[4] == "" for e in pic.edges if e[0] in products or e[2] in products)
+
+
+def test_graph_never_replaces_a_file_fwdstep_did_not_write(tmp_path, capsys):
+    d = "diagrams/theorem2.yaml"
+    pic = tmp_path / "pic.svg"
+    args = ["graph", d, "--engine", "matplotlib", "-o"]
+    assert main(args + [str(pic)]) == 0
+    first = pic.read_bytes()
+    assert main(args + [str(pic)]) == 0                  # its own picture: drawn again
+    assert pic.read_bytes()[:5] == first[:5] == b"<?xml"
+    user = tmp_path / "user.png"
+    user.write_text("the user's figure")
+    capsys.readouterr()
+    assert main(args + [str(user)]) == 2
+    assert capsys.readouterr().err == (f"fwdstep: refusing to replace {user}: fwdstep did not "
+                                       "write it (pass --force to replace it, or choose "
+                                       "another file with -o)\n")
+    assert user.read_text() == "the user's figure"       # untouched
+    assert main(args + [str(user), "--force"]) == 0
+    assert user.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    link = tmp_path / "link.svg"
+    link.symlink_to(pic)
+    assert main(args + [str(link), "--force"]) == 2
+    assert "it is a symbolic link" in capsys.readouterr().err
+    other = tmp_path / "app"
+    other.mkdir()
+    (other / "manifest.json").write_text('{"name": "web app"}')
+    assert main(args + [str(other / "x.svg")]) == 2
+    assert capsys.readouterr().err.endswith("its manifest.json was not written by fwdstep and "
+                                            "would be replaced; choose another directory "
+                                            "with -o\n")
+    assert (other / "manifest.json").read_text() == '{"name": "web app"}'
+    assert not (other / "x.svg").exists()
