@@ -9,8 +9,9 @@ once.  Three executors, one interface:
 * ``scheduler="tcp://HOST:PORT"`` or ``client=dask.distributed.Client(...)``: the jobs are
   submitted to that Dask cluster (``pip install 'fwdstep[distributed]'``).
 
-Jobs carry everything they need (diagram specs and blocks are pickled), so a worker on
-another machine needs fwdstep installed but not the diagram files.  Ctrl-C / SIGTERM in the
+Jobs carry everything they need (diagram specs are pickled, blocks rebuilt from them), so a
+worker on another machine needs fwdstep installed but not the diagram files.  Local workers
+are forked with the jobs already in memory and are sent only job numbers.  Ctrl-C / SIGTERM in the
 caller stop the local workers (or cancel the Dask futures); whatever was yielded before is
 the caller's to keep.
 """
@@ -66,20 +67,40 @@ def _call(function_and_job):
     return number, function(job)
 
 
+#: (function, jobs) of the pool being started: forked workers inherit them, so a job is sent
+#: as its number (no pickling of specs, no rebuilding of blocks in the worker)
+_INHERITED: tuple | None = None
+
+
+def _call_inherited(number: int):
+    function, jobs = _INHERITED
+    return number, function(jobs[number])
+
+
 def _on_processes(function, jobs: list, workers: int):
     import multiprocessing
-    context = multiprocessing.get_context("fork" if hasattr(os, "fork") else "spawn")
-    pool = context.Pool(workers, initializer=_ignore_interrupts)
+    global _INHERITED
+    fork = hasattr(os, "fork") and "fork" in multiprocessing.get_all_start_methods()
+    context = multiprocessing.get_context("fork" if fork else "spawn")
+    if fork:                  # set while the pool lives (a replaced worker forks again)
+        _INHERITED = (function, jobs)
+        tasks, call = list(range(len(jobs))), _call_inherited
+    else:
+        tasks, call = [(function, k, job) for k, job in enumerate(jobs)], _call
     try:
-        tasks = [(function, k, job) for k, job in enumerate(jobs)]
-        for number, outcome in pool.imap_unordered(_call, tasks, chunksize=1):
-            yield jobs[number], outcome
-        pool.close()
-    except BaseException:
-        pool.terminate()                 # interrupted: stop the workers at once
-        raise
+        pool = context.Pool(workers, initializer=_ignore_interrupts)
+        try:
+            for number, outcome in pool.imap_unordered(call, tasks, chunksize=1):
+                yield jobs[number], outcome
+            pool.close()
+        except BaseException:
+            pool.terminate()             # interrupted: stop the workers at once
+            raise
+        finally:
+            pool.join()
     finally:
-        pool.join()
+        if fork:
+            _INHERITED = None
 
 
 def _on_dask(function, jobs: list, client):
