@@ -5,7 +5,9 @@ the first step: ``check_log`` refuses a log larger than the budget (``fwdstep ru
 --max-log-memory``, default ``DEFAULT_MAX_LOG_BYTES``) before the allocation, and says how to
 log less (``simulation.log_every``, fewer signals under ``log:``) or to stream the log to disk
 (``fwdstep run --log-to-disk``, then the budget is the free disk space).  ``fwdstep validate``
-applies the same check, so it never says ok to a run that cannot start.
+applies the same check, so it never says ok to a run that cannot start.  ``fwdstep.simulate``
+checks it too, whoever calls it (``max_log_bytes=``, ``log_dir=``; a sweep's batches are
+checked against ``--max-memory``), so the Python API never allocates an unchecked log.
 """
 from __future__ import annotations
 
@@ -16,6 +18,11 @@ import shutil
 import numpy as np
 
 from .errors import ConfigError
+
+
+class BudgetError(ConfigError):
+    """A budget refused before the allocation (exit 2, like any bad setting)."""
+
 
 DEFAULT_MAX_LOG_BYTES = 2 * 1024 ** 3          # 2 GiB of recorded signals in memory
 
@@ -62,10 +69,12 @@ def log_bytes(d) -> int:
     return 8 * log_rows(d) * log_values(d)
 
 
-def check_log(d, limit: int | None = None, to_disk: str | None = None) -> int:
+def check_log(d, limit: int | None = None, to_disk: str | None = None,
+              api: bool = False) -> int:
     """Refuse a log larger than ``limit`` bytes in memory (or, with ``to_disk`` a directory,
     larger than half its free space: the log and the result file written from it).
-    Returns the log's size in bytes."""
+    ``api``: the message names ``fwdstep.simulate``'s arguments instead of the options of
+    ``fwdstep run``.  Returns the log's size in bytes."""
     size = log_bytes(d)
     rows, values = log_rows(d), log_values(d)
     how = (f"{rows} rows x {values} values x 8 bytes" +
@@ -74,18 +83,21 @@ def check_log(d, limit: int | None = None, to_disk: str | None = None) -> int:
         free = shutil.disk_usage(to_disk).free
         where = os.path.dirname(os.path.abspath(to_disk))
         if 2 * size > free:
-            raise ConfigError(f"the log needs {human(size)} ({how}) on disk, and the result "
+            raise BudgetError(f"the log needs {human(size)} ({how}) on disk, and the result "
                               f"file as much again; {where} has "
                               f"{human(free)} free: log less (simulation.log_every, fewer "
-                              "signals under log:) or choose another -o", file=d.file)
+                              "signals under log:) or choose another "
+                              + ("log_dir" if api else "-o"), file=d.file)
         return size
     limit = DEFAULT_MAX_LOG_BYTES if limit is None else limit
     if size > limit:
-        raise ConfigError(f"the log needs {human(size)} ({how}), more than the "
-                          f"{human(limit)} allowed in memory: log less (--set "
-                          f"simulation.log_every=K, or fewer signals under log:), raise the "
-                          "limit (--max-log-memory) or stream it to disk (--log-to-disk)",
-                          file=d.file)
+        raise BudgetError(f"the log needs {human(size)} ({how}), more than the "
+                          f"{human(limit)} allowed in memory: log less ("
+                          + ("simulation.log_every" if api else "--set simulation.log_every=K")
+                          + ", or fewer signals under log:), raise the limit ("
+                          + ("max_log_bytes=" if api else "--max-log-memory")
+                          + ") or stream it to disk ("
+                          + ("log_dir=" if api else "--log-to-disk") + ")", file=d.file)
     return size
 
 

@@ -92,11 +92,12 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
     from .compiler import load_diagram
     from .outputs import OutputDir
     outdir = outdir or default_outdir(path)
-    log_dir = None
+    log_dir = limit = None
     try:
         d = load_diagram(path, _overrides(sets))
-        if not log_to_disk:
-            check_log(d, parse_size(max_log_memory) if max_log_memory else None)
+        limit = parse_size(max_log_memory) if max_log_memory else None
+        if not log_to_disk:             # before the output directory is claimed
+            check_log(d, limit)
         out = OutputDir(outdir, force, expected=run_files(d, plots, formats))
         out.__enter__()
     except (DiagramError, OutputError) as exc:
@@ -107,8 +108,8 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
     try:
         if log_to_disk:
             log_dir = tempfile.mkdtemp(prefix=f".{out.name}.fwdstep-log-", dir=out.parent)
-            check_log(d, to_disk=log_dir)
-        return _run_into(out, d, plots, quiet, backend, formats, log_dir)
+            check_log(d, to_disk=log_dir)   # the CLI's words; simulate checks it again
+        return _run_into(out, d, plots, quiet, backend, formats, log_dir, limit)
     except (DiagramError, OutputError) as exc:
         _err(str(exc))
         return EXIT_INPUT
@@ -118,13 +119,15 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
             shutil.rmtree(log_dir, ignore_errors=True)
 
 
-def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None) -> int:
+def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
+              max_log_bytes=None) -> int:
     from .simulate import simulate
     from . import signals
     code = EXIT_OK
     progress = None if quiet else _progress
     try:
-        result = simulate(d, progress=progress, backend=backend, log_dir=log_dir)
+        result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
+                          max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
     except SimulationError as exc:
         result = exc.result
         _err(str(exc))

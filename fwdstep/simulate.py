@@ -179,7 +179,7 @@ def initial_state(d: CompiledDiagram, t0: float = 0.0, event=None) -> np.ndarray
 
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
              fuse: bool = True, backend: str | None = None,
-             log_dir: str | None = None) -> Result:
+             log_dir: str | None = None, max_log_bytes: int | None = None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -192,9 +192,13 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
     ``fwdstep.backend_numba``; batches run their variants in parallel).
     ``log_dir``: record into memory-mapped files in that directory instead of memory
-    (``fwdstep run --log-to-disk``; NumPy backend).  The size is checked by the caller
-    (``fwdstep.budgets.check_log``).
+    (``fwdstep run --log-to-disk``; NumPy backend).
+    The log's size is checked before anything is allocated (``fwdstep.budgets.check_log``):
+    at most ``max_log_bytes`` in memory (default ``budgets.DEFAULT_MAX_LOG_BYTES``, 2 GiB),
+    or, with ``log_dir``, half the free space there; else ``ConfigError`` with the numbers.
     """
+    from .budgets import check_log
+    check_log(d, max_log_bytes, to_disk=log_dir, api=True)
     cfg = d.spec.simulation
     if log_dir is not None and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
         raise ConfigError("--log-to-disk works with the numpy backend and the fixed-step "

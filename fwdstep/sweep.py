@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .compiler import _value_key, compile_variants, instantiate_variants, structure_signature
+from .budgets import BudgetError
 from .distributed import dask_client, local_cores, run_jobs
 from .errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
                      OutputError)
@@ -371,7 +372,7 @@ def _run_members(job: BatchJob, members: list) -> list:
         r = simulate(d, max_log_bytes=job.max_log_bytes)
     except DivergenceError as exc:
         r = exc.result
-    except ConfigError as exc:           # over the log budget (plan_batches keeps it under)
+    except BudgetError as exc:           # over the log budget (plan_batches keeps it under)
         return [{"status": "error", "message": str(exc), "diverged_at": None,
                  "metrics": {}} for _ in members]
     except SimulationInterrupted:

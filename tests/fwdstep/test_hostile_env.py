@@ -340,6 +340,48 @@ def test_log_budget_option_and_streaming_to_disk_give_the_same_result(tmp_path, 
     assert listing(tmp_path) == ["a", "b", "d.yaml"]      # the log files are gone
 
 
+def test_log_budget_is_checked_by_the_python_api_before_allocation(tmp_path, monkeypatch):
+    from fwdstep.budgets import BudgetError
+    d = fwdstep.load_diagram(write(tmp_path, HUGE_LOG))
+    allocated = []
+    monkeypatch.setattr("fwdstep.program.np.full", lambda *a, **k: allocated.append(a))
+    with pytest.raises(BudgetError) as info:
+        fwdstep.simulate(d)
+    assert str(info.value) == (
+        f"{tmp_path / 'd.yaml'}: the log needs 149.1 GiB (10000001 rows x 2001 values x 8 "
+        "bytes), more than the 2.0 GiB allowed in memory: log less (simulation.log_every, or "
+        "fewer signals under log:), raise the limit (max_log_bytes=) or stream it to disk "
+        "(log_dir=)")
+    assert allocated == []                                  # refused before any log array
+    monkeypatch.undo()
+    # 1 001 rows x (100 + 100 + 1) values x 8 bytes = 1 609 608 bytes
+    small = fwdstep.load_diagram(write(tmp_path, SMALL_LOG), {"simulation.t_final": 0.1})
+    with pytest.raises(BudgetError, match=r"needs 1\.5 MiB \(1001 rows x 201 values x 8 "):
+        fwdstep.simulate(small, max_log_bytes=1_609_607)
+    r = fwdstep.simulate(small, max_log_bytes=1_609_608)              # exactly enough
+    np.testing.assert_allclose(r["int.y"][:, 0], r.t, rtol=1e-12)     # x(t) = t
+
+
+def test_a_sweep_batch_over_the_log_budget_is_refused_not_allocated(tmp_path):
+    # 1 001 rows x 100 values x 8 bytes = 0.8 MB of metric per variant: planned batches
+    # stay under --max-memory, and fwdstep.simulate refuses a batch above it (a safety net
+    # for the plan: here the plan is bypassed by giving the batch a smaller budget)
+    from fwdstep.sweep import BatchJob, run_job
+    from fwdstep.compiler import instantiate_variants
+    from fwdstep.spec import load_spec
+    path = write(tmp_path, SMALL_LOG.replace("t_final: 1,", "t_final: 0.1,").replace(
+        "simulation:", "metrics: {error: int.y}\nsimulation:"))
+    specs = [load_spec(path)] * 2
+    job = BatchJob(0, [0, 1], specs, instantiate_variants(specs, {}), "int.y", False,
+                   frozenset(), [{}, {}], max_log_bytes=1_000_000)
+    part = run_job(job)
+    assert list(part["status"]) == ["error", "error"]
+    assert "the log needs 1.5 MiB (1001 rows x 201 values x 8 bytes for 2 variants)" \
+        in part["message"][0]
+    job.max_log_bytes = 2_000_000
+    assert list(run_job(job)["status"]) == ["ok", "ok"]
+
+
 def integrators(n: int, k: int) -> str:
     """k independent Integrators of n states each, driven by ones: x(t) = t exactly."""
     lines = ["blocks:"]
