@@ -40,6 +40,7 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     docstring.  Raises like ``fwdstep.simulate`` (the error carries the partial Result)."""
     from scipy.integrate import solve_ivp
 
+    from . import finite
     from .program import build_program
     from .simulate import (SimulationInterrupted, _block_error, _divergence_message, _finish,
                            initial_state)
@@ -56,8 +57,11 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
     grid = [n * h for n in range(0, n_steps, every)] + [t_final]
     plan = plan_events(d, h, n_steps)
     # the fixed-step path's generated stage code: f(t, x) is its stage 1 at an explicit time
+    unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.finite)
+    probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
     prog = build_program(d, len(grid), sampled=tuple(plan.sampled_signals) if plan else (),
-                         solver="euler")
+                         solver="euler", probe=probe)
+    check = finite.OutputCheck(d, *probe) if probe else None
     xn, k0 = prog.xn, prog.k[0]
     inner = [(t, ev) for t, ev in (plan.instants if plan else []) if 0 < t < t_final]
     start = plan.instants[0][1] if plan and plan.instants and plan.instants[0][0] == 0 else None
@@ -82,6 +86,12 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
         xn[...] = state
         prog.final_ts(t_rec, ts, row)
         row += 1
+        bad = check.failed(alive) if check is not None else None
+        if bad is not None:
+            stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check, bad, alive,
+                                        died_at)
+            if stop is not None:
+                raise finite.NonFiniteOutput(stop)
 
     def update(event, ts):
         xn[...] = x
@@ -150,6 +160,8 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
             error = SimulationInterrupted(message, time=t)
         except SimulationError as exc:
             status, message, error = "error", str(exc), exc
+        except finite.NonFiniteOutput as exc:     # an unrecorded output: block and port
+            row, status, message, x = exc.stop
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
             error = _locate(d, t, x, exc, _block_error)
             error.__cause__ = exc

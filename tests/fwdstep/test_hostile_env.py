@@ -382,6 +382,24 @@ def test_a_sweep_batch_over_the_log_budget_is_refused_not_allocated(tmp_path):
     assert list(run_job(job)["status"]) == ["ok", "ok"]
 
 
+def test_parameter_evaluation_time_is_budgeted_and_stops_validation(tmp_path, capsys,
+                                                                    monkeypatch):
+    # a clock that advances 10 s per reading: the budget (30 s) is spent while evaluating
+    # the third parameter (readings: start 0, a 10, b 20, c 30, d 40 > 30)
+    import types
+    from fwdstep import spec as spec_module
+    clock = iter(range(0, 10_000, 10))
+    monkeypatch.setattr(spec_module, "time", types.SimpleNamespace(monotonic=lambda: next(clock)))
+    text = ("parameters:\n  a: 1\n  b: a + 1\n  c: b + 1\n  d: c + 1\n  e: d + 1\n"
+            "blocks:\n  c0: {type: Constant, value: [e]}\n")
+    path = write(tmp_path, text)
+    assert spec_module.MAX_PARAMETER_SECONDS == 30
+    assert cli.main(["validate", path]) == 2
+    assert capsys.readouterr().err == (
+        f"fwdstep: {path}:5: parameter 'd': evaluating the diagram's parameters has taken 40 s; "
+        "the limit is 30 s\n")                     # one line: a spent budget stops validation
+
+
 def integrators(n: int, k: int) -> str:
     """k independent Integrators of n states each, driven by ones: x(t) = t exactly."""
     lines = ["blocks:"]

@@ -461,3 +461,18 @@ def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_pa
         assert v.metrics == {m: alone[m] for m in v.metrics} and len(v.metrics) == 4
         # |tracked.y(1)| = |g (1, 2)| = sqrt(5) g
         assert alone["final_abs_error"] == pytest.approx(5 ** 0.5 * v.values["g"], rel=1e-12)
+
+
+@pytest.mark.parametrize("solver", ["rk4", "dop853"])
+def test_an_unrecorded_output_is_checked_with_fixed_and_adaptive_solvers(tmp_path, solver):
+    # big.y = 1e308 t is finite up to t = 1.79 and inf from 1.8 (> 1.797e308) on; the
+    # integrators see only sat(big.y) and a slope of 1 (finite for every solver)
+    text = (UNLOGGED.replace("g: 1\n", "g: 1.0e308\n").replace("[1.0e150, 1]", "[1, 1]")
+            .replace("slope: {type: Gain, gain: g", "slope: {type: Gain, gain: 1")
+            .replace("t_final: 1, step: 0.01, bound: 1.0e300",
+                     f"t_final: 3, step: 0.01, solver: {solver}"))
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(fwdstep.load_diagram(write(tmp_path, text)))
+    assert str(info.value) == ("simulation diverged at t = 1.8: block 'big' (Gain) output "
+                               "'y'[0] = inf is not finite; results up to that time are kept")
+    assert info.value.result.t[-1] == pytest.approx(1.8)
