@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the batches on this Dask scheduler (tcp://HOST:PORT); needs "
                          "fwdstep[distributed]")
+    sw.add_argument("--backend", choices=("numpy", "compiled"), default=None,
+                    help="override simulation.backend for every variant; compiled batches run "
+                         "their variants in parallel threads (needs numba: fwdstep[fast])")
     sw.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory for the batches running at once, e.g. 2GB (default 1GB)")
     sw.add_argument("--batch-size", type=int, default=None, metavar="N",
@@ -125,6 +128,9 @@ def _add_results_commands(sub, run) -> None:
     gr.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
     gr.add_argument("--force", action="store_true",
                     help="replace the output file even when fwdstep did not write it")
+    gr.add_argument("--tags", choices=("auto", "on", "off"), default="auto",
+                    help="draw a signal that feeds 3 or more blocks as named tags instead of "
+                         "wires (auto: in pictures of more than 30 boxes)")
     rep = sub.add_parser("report", help="one self-contained HTML page of a run or sweep "
                                         "directory: diagram, parameters, metrics, figures")
     rep.add_argument("run_dir", metavar="RUN_DIR",
@@ -150,7 +156,7 @@ def _results_command(args):
     if args.command == "graph":
         from fwdstep.drawing import cmd_graph
         return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine,
-                         args.force)
+                         args.force, args.tags)
     if args.command == "run" and (args.figure_format or args.report):
         from fwdstep import commands
         code = commands.cmd_run(args.diagram, args.set, args.outdir, args.force,

@@ -27,6 +27,7 @@ from .errors import OutputError
 
 FORMATS = ("svg", "png", "pdf")
 FEEDBACK_COLOR = "#c0392b"
+TAG_COLOR = "#1a5276"
 _EQ = re.compile(r"(?<![\w'])\((?:[1-9]\d*[a-z]?|[a-z]\d+)\)")
 
 
@@ -93,8 +94,9 @@ def shape_text(shape: tuple) -> str:
     return "1" if not shape else "×".join(str(s) for s in shape)
 
 
-def build_picture(diagram, depth: int | None = None) -> Picture:
-    """The picture of a CompiledDiagram; subsystems deeper than ``depth`` are one box."""
+def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Picture:
+    """The picture of a CompiledDiagram; subsystems deeper than ``depth`` are one box;
+    ``tags``: widely fed-back signals as named tags (``with_tags``)."""
     spec = diagram.spec
     blocks = {b.name: b for b in diagram.blocks}
     entries = {e.name: e for e in spec.blocks}
@@ -161,7 +163,44 @@ def build_picture(diagram, depth: int | None = None) -> Picture:
     for e in edges:
         e[5] = (e[0], e[2]) in back
     from .plotting import headline
-    return Picture(boxes, [tuple(e) for e in edges], frames, headline(spec.description, 140))
+    picture = Picture(boxes, [tuple(e) for e in edges], frames, headline(spec.description, 140))
+    return with_tags(picture, spec.aliases) if tags else picture
+
+
+#: a signal feeding this many blocks or more is drawn with tags (see ``with_tags``) ...
+TAG_FANOUT = 3
+#: ... in a picture with more boxes than this (Theorems 6-9); smaller ones keep every wire
+TAG_BOXES = 30
+
+
+def with_tags(picture: Picture, aliases: dict | None = None, fanout: int = TAG_FANOUT):
+    """The wires of a widely used signal as named tags (Simulink's Goto/From): a signal
+    feeding ``fanout`` or more blocks (the plant's q feeding every stage of the controller)
+    goes into one tag "▶ plant.q" beside its source, and each block it feeds takes it from a
+    tag "plant.q ▶" beside that block, drawn in the feedback colour where the wire was
+    feedback.  The connections are the same, only their long routes become names."""
+    by_source: dict = {}
+    for e in picture.edges:
+        by_source.setdefault((e[0], e[1]), []).append(e)
+    named = {}
+    for alias, real in (aliases or {}).items():
+        if len(alias) < len(named.get(real, alias + "x")):
+            named[real] = alias
+    boxes, edges = dict(picture.boxes), []
+    for (src, port), group in by_source.items():
+        if len(group) < fanout:
+            edges += group
+            continue
+        text = named.get(f"{src}.{port}", f"{picture.boxes[src].title}.{port}")
+        goto = f"{src}.{port}:goto"
+        boxes[goto] = Box(goto, text, "tag", [text], [], frame=picture.boxes[src].frame)
+        edges.append((src, port, goto, text, group[0][4], False))
+        for k, (_, _, dst, dp, shape, back) in enumerate(group):
+            tag = f"{src}.{port}:from{k}"
+            boxes[tag] = Box(tag, text, "tag" + (" back" if back else ""), [], [text],
+                             frame=picture.boxes[dst].frame)
+            edges.append((tag, text, dst, dp, shape, False))
+    return Picture(boxes, edges, picture.frames, picture.title)
 
 
 def feedback_edges(nodes: list, edges: list) -> set:
@@ -243,6 +282,14 @@ def _dot_escape(text: str) -> str:
 
 def _box_html(box: Box) -> str:
     e = html.escape
+    if box.kind.startswith("tag"):         # a named wire end: "▶ q" (goto) or "q ▶" (from)
+        port = (f'PORT="i_{_pid(box.inputs[0])}"' if box.inputs else
+                f'PORT="o_{_pid(box.outputs[0])}"')
+        text = f"▶ {e(box.title)}" if box.inputs else f"{e(box.title)} ▶"
+        color = FEEDBACK_COLOR if box.kind == "tag back" else TAG_COLOR
+        return (f'<TABLE BORDER="1" CELLBORDER="0" CELLSPACING="0" STYLE="ROUNDED" '
+                f'COLOR="{color}"><TR><TD {port} CELLPADDING="2">'
+                f'<FONT POINT-SIZE="9" COLOR="{color}">{text}</FONT></TD></TR></TABLE>')
     rows = max(len(box.inputs), len(box.outputs), 1)
     head = (f'<TD ROWSPAN="{rows}" BGCOLOR="#ffffff" CELLPADDING="4"><B>{e(box.title)}</B><BR/>'
             f'<FONT POINT-SIZE="8" COLOR="#555555">{e(box.kind)}</FONT>'
@@ -356,19 +403,32 @@ def draw_layered(picture: Picture):
 
 
 # ---------------------------------------------------------------------------- entry points
+def picture_for(diagram, depth: int | None = None, tags: str = "auto") -> Picture:
+    """The picture ``draw_diagram`` draws: a subsystem file's ports as boxes, and tags on
+    (``tags="on"``), off, or on for pictures of more than TAG_BOXES boxes (``"auto"``)."""
+    picture = build_picture(diagram, depth)
+    if isinstance(diagram, _Unwired):
+        subsystem_ports(picture, diagram.spec.file, diagram)
+    if tags not in ("auto", "on", "off"):
+        raise OutputError(f"tags must be auto, on or off, not {tags!r}")
+    if tags == "on" or (tags == "auto" and len(picture.boxes) > TAG_BOXES):
+        picture = with_tags(picture, diagram.spec.aliases)
+    return picture
+
+
 def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "auto",
-                 force: bool = False) -> str:
+                 force: bool = False, tags: str = "auto") -> str:
     """Write the picture of ``diagram`` to ``path`` (.svg, .png or .pdf); the engine used.
-    An existing file that fwdstep did not write is replaced only with ``force``."""
+    An existing file that fwdstep did not write is replaced only with ``force``.  ``tags``:
+    "on" draws widely used signals as named tags (``with_tags``), "off" as wires, "auto"
+    (default) tags them when the picture has more than TAG_BOXES boxes."""
     fmt = os.path.splitext(path)[1].lstrip(".").lower()
     if fmt not in FORMATS:
         raise OutputError(f"cannot draw to '{path}': the file name must end in "
                           f"{', '.join('.' + f for f in FORMATS)}")
     if os.path.isdir(path):
         raise OutputError(f"cannot write the picture to {path}: it is a directory")
-    picture = build_picture(diagram, depth)
-    if isinstance(diagram, _Unwired):
-        subsystem_ports(picture, diagram.spec.file, diagram)
+    picture = picture_for(diagram, depth, tags)
     if engine == "auto":
         engine = "dot" if shutil.which("dot") else "matplotlib"
     if engine == "dot":
@@ -527,7 +587,7 @@ def subsystem_ports(picture: Picture, path: str, diagram) -> None:
 
 
 def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None = None,
-              engine: str = "auto", force: bool = False) -> int:
+              engine: str = "auto", force: bool = False, tags: str = "auto") -> int:
     """``fwdstep graph DIAGRAM -o FILE.svg``: exit 0, or 2 with one line on stderr."""
     import sys
     from .errors import FwdstepError, one_line
@@ -537,7 +597,7 @@ def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None
         diagram = diagram_for_drawing(path, overrides)
         output = output or os.path.join(
             "out", os.path.splitext(os.path.basename(path))[0], "diagram.svg")
-        used = draw_diagram(diagram, output, depth, engine, force)
+        used = draw_diagram(diagram, output, depth, engine, force, tags)
     except FwdstepError as exc:
         print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return 2

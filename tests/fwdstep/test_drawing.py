@@ -187,3 +187,45 @@ def test_graph_never_replaces_a_file_fwdstep_did_not_write(tmp_path, capsys):
                                             "with -o\n")
     assert (other / "manifest.json").read_text() == '{"name": "web app"}'
     assert not (other / "x.svg").exists()
+
+
+def test_tags_replace_the_wires_of_widely_used_signals_and_keep_every_connection():
+    from fwdstep.drawing import with_tags
+    d = fwdstep.load_diagram("diagrams/theorem9.yaml")
+    wired = build_picture(d)
+    tagged = with_tags(wired, d.spec.aliases)
+    fanout = {}
+    for e in wired.edges:
+        fanout[e[:2]] = fanout.get(e[:2], 0) + 1
+    gotos = {k: b for k, b in tagged.boxes.items() if k.endswith(":goto")}
+    assert {b.title for b in gotos.values()} >= {"plant.q", "plant.qdot", "plant.Y"}
+    into = {(e[0], e[1]): e[2] for e in tagged.edges}
+    direct = {e[:4] for e in tagged.edges}
+    froms = {(tagged.boxes[e[0]].title, e[2], e[3]) for e in tagged.edges
+             if tagged.boxes[e[0]].kind.startswith("tag")}
+    for src, sp, dst, dp, _, back in wired.edges:       # every connection is still drawn
+        if fanout[(src, sp)] < 3:
+            assert (src, sp, dst, dp) in direct
+        else:
+            goto = tagged.boxes[into[(src, sp)]]
+            assert (goto.title, dst, dp) in froms
+            kind = next(tagged.boxes[e[0]].kind for e in tagged.edges
+                        if e[2:4] == (dst, dp) and tagged.boxes[e[0]].title == goto.title)
+            assert kind == ("tag back" if back else "tag")   # feedback keeps its colour
+    # no block output feeds three or more blocks through wires any more
+    wires = {}
+    for e in tagged.edges:
+        if not tagged.boxes[e[0]].kind.startswith("tag"):
+            wires[e[:2]] = wires.get(e[:2], 0) + 1
+    assert max(wires.values()) == 2
+
+
+def test_small_diagrams_keep_their_wires_and_large_ones_get_tags():
+    from fwdstep.drawing import picture_for
+    small = fwdstep.load_diagram("diagrams/theorem1.yaml")
+    large = fwdstep.load_diagram("diagrams/theorem6.yaml")
+    def tags(d, mode):
+        return sorted(b.title for k, b in picture_for(d, tags=mode).boxes.items()
+                      if k.endswith(":goto"))
+    assert tags(small, "auto") == [] and tags(small, "on") == ["arm.q", "arm.qdot"]
+    assert tags(large, "auto") == tags(large, "on") != [] and tags(large, "off") == []
