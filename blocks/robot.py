@@ -709,45 +709,7 @@ def n_link_theta_given(block_name, theta, lengths, masses, com, com_angle, inert
     return theta.copy()
 
 
-def _n_link_geometry(q, lengths, mask):
-    """E_i = exp(j phi_i) with phi_i = q_1 + ... + q_i, and G[b, i, k] = O_i - O_k (joint
-    origins as complex numbers) for k <= i, 0 above the diagonal (``mask`` [1, i, k])."""
-    E = np.exp(1j * ko.cumsum1(q))                                 # (B, n)
-    lE = lengths * E
-    O = ko.cumsum1(lE) - lE                                        # O_1 = 0, O_2, ..., O_n
-    G = (O[:, :, None] - O[:, None, :]) * mask                     # (B, i, k)
-    return E, G
-
-
-def _n_link_regressor(qdot, zeta, zetad, lengths, gravity, mask, E, G):
-    """Y (B, n, 4n): H zetad + C zeta + g = Y theta with C = sum_i m_i Jv_i^T Jv_i' (so
-    Hdot - 2C is skew-symmetric), theta ordered per link [m, sx, sy, J] as n_link_theta;
-    E, G from ``_n_link_geometry``."""
-    psi = ko.cumsum1(zeta)
-    psid = ko.cumsum1(zetad)
-    phid = ko.cumsum1(qdot)
-    Q = E * (1j * psid - phid * psi)                       # joint-frame "acceleration" terms
-    lQ = lengths * Q
-    A0 = ko.cumsum1(lQ) - lQ                               # sum_{j<i} l_j Q_j
-    Gc = np.conj(G)
-    Y_m = np.imag(Gc * A0[:, :, None]) + gravity[:, None, None] * np.real(G)    # (B, i, k)
-    X = np.conj(E) * A0                                                        # (B, i)
-    Z = Gc * Q[:, :, None]                                                     # (B, i, k)
-    gcos = gravity[:, None] * np.real(E)
-    gsin = gravity[:, None] * np.imag(E)
-    Y_sx = mask * (np.imag(X) + gcos)[:, :, None] + np.imag(Z)
-    Y_sy = mask * (gsin * -1.0 - np.real(X))[:, :, None] + np.real(Z)
-    Y_J = mask * psid[:, :, None]
-    B, n = Y_m.shape[0], Y_m.shape[1]
-    Y = np.empty((B, n, n, 4))                             # (B, k, i, 4)
-    Y[:, :, :, 0] = Y_m.transpose((0, 2, 1))
-    Y[:, :, :, 1] = Y_sx.transpose((0, 2, 1))
-    Y[:, :, :, 2] = Y_sy.transpose((0, 2, 1))
-    Y[:, :, :, 3] = Y_J.transpose((0, 2, 1))
-    return Y.reshape((B, n, 4 * n))
-
-
-def n_link_output(t, x, tau, tau_star, lengths, theta, gravity, upper, lower):
+def n_link_output(t, x, tau, tau_star, lengths, theta, gravity):
     return plant_state_outputs(x)
 
 
@@ -756,17 +718,16 @@ def _suffix(a):
     return ko.cumsum1(a[:, ::-1])[:, ::-1]
 
 
-def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, upper, lower):
+def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity):
     """dx = [qdot, H^-1 (tau + tau_star - C qdot - g)] with H, C, g of NLinkArm's docstring,
-    in O(n^2) real arithmetic from sums over the outer links (``upper`` [a, b] = (a <= b),
-    ``lower`` = 1 - upper).  With O_i the origin of joint i, w_i = s_i E_i the first moment
-    of link i (s_i = theta's [sx, sy] rotated by phi_i = q_1 + ... + q_i) and
-    M_i = m_i O_i + w_i, for a <= b:
-    H_ab = sum_{i>=b} (m_i |O_i|^2 + 2 O_i.w_i + J_i) - (O_a + O_b).sum_{i>=b} M_i
+    in O(n^2) real arithmetic from sums over the outer links.  With O_i the origin of joint
+    i, w_i = s_i E_i the first moment of link i (theta's [sx, sy] rotated by
+    phi_i = q_1 + ... + q_i) and S_b = sum_{i>=b} (m_i O_i + w_i), for a <= b:
+    H_ab = sum_{i>=b} (m_i |O_i|^2 + 2 O_i.w_i + J_i) - (O_a + O_b).S_b
            + (sum_{i>=b} m_i) O_a.O_b;
-    C qdot + g is the recursive Newton-Euler torque at qddot = 0 (the force on link i is
-    F_i = m_i A_i - phidot_i^2 w_i + j gravity m_i, A_i = -sum_{j<i} l_j phidot_j^2 E_j, and
-    joint k carries sum_{i>=k} (O_i - O_k) x F_i + w_i x A_i + gravity w_i.x)."""
+    C qdot + g is the recursive Newton-Euler torque at qddot = 0: the force on link i is
+    F_i = m_i A_i - phidot_i^2 w_i + j gravity m_i with A_i = -sum_{j<i} l_j phidot_j^2 E_j,
+    and joint k carries sum_{i>=k} (O_i - O_k) x F_i + w_i x A_i + gravity w_i.x."""
     n = x.shape[1] // 2
     q = x[:, :n]
     qdot = x[:, n:]
@@ -785,10 +746,17 @@ def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, upper, lower
     SM = _suffix(m)
     SX = _suffix(m * Ox + wx)
     SY = _suffix(m * Oy + wy)
-    row = _suffix(P) - Ox * SX - Oy * SY                                  # terms in b only
-    U = (row[:, None, :] - Ox[:, :, None] * SX[:, None, :] - Oy[:, :, None] * SY[:, None, :]
-         + SM[:, None, :] * (Ox[:, :, None] * Ox[:, None, :] + Oy[:, :, None] * Oy[:, None, :]))
-    H = U * upper + U.transpose((0, 2, 1)) * lower                        # U[min, max]
+    # H_ab = row_b + O_a.(SM_b O_b - S_b) for a <= b: a product of (B, n, 3) and (B, 3, n)
+    row = _suffix(P) - Ox * SX - Oy * SY
+    B = row.shape[0]
+    L = np.ones((B, n, 3))
+    L[:, :, 1] = Ox
+    L[:, :, 2] = Oy
+    R = np.empty((B, 3, n))
+    R[:, 0, :] = row
+    R[:, 1, :] = SM * Ox - SX
+    R[:, 2, :] = SM * Oy - SY
+    H = ko.symupper(ko.bmatmul(L, R))
     v2 = phid * phid
     lv = lc * v2
     Ax = lv - ko.cumsum1(lv)                       # A_i = -sum_{j<i} l_j phidot_j^2 E_j
@@ -800,21 +768,57 @@ def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity, upper, lower
     T = Ox * Fy - Oy * Fx + wx * Ay - wy * Ax + g * wx
     bias = _suffix(T) - Ox * _suffix(Fy) + Oy * _suffix(Fx)             # C qdot + g
     rhs = tau + tau_star - bias
-    B = rhs.shape[0]
     dx = np.empty((B, 2 * n))
     dx[:, :n] = qdot
     dx[:, n:] = ko.bsolve(H, rhs)
     return dx
 
 
-def n_link_regressor_output(t, x, q, qdot, zeta, zetad, lengths, gravity, mask_ik):
-    """Y (B, n, 4n) of NLinkRegressor."""
+def n_link_regressor_output(t, x, q, qdot, zeta, zetad, lengths, gravity, mask):
+    """Y (B, n, 4n) of NLinkRegressor: H zetad + C zeta + g = Y theta with
+    C = sum_i m_i Jv_i^T dJv_i/dt (so Hdot - 2C is skew-symmetric), theta ordered per link
+    [m, sx, sy, J] as n_link_theta.  In real arithmetic, with E_i = exp(j phi_i),
+    O_i the joint origins, Q_i = E_i (j psidot_i - phidot_i psi_i) (psi, psidot, phidot the
+    cumulative sums of zeta, zetad, qdot) and A_i = sum_{j<i} l_j Q_j, every entry is
+    Y[k, 4i + c] = alpha_ci + Ox_k beta_ci + Oy_k gamma_ci for k <= i (0 beyond; ``mask``):
+    column m: alpha = O_i x A_i + gravity Ox_i, beta = -(Ay_i + gravity), gamma = Ax_i;
+    column sx: alpha = (conj(E_i) A_i).y + gravity cos phi_i + O_i x Q_i, beta = -Qy_i,
+    gamma = Qx_i; column sy: alpha = -gravity sin phi_i - (conj(E_i) A_i).x + O_i.Q_i,
+    beta = -Qx_i, gamma = -Qy_i; column J: alpha = psidot_i, beta = gamma = 0."""
     B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0], gravity.shape[0])
     n = q.shape[1]
     zero = np.zeros((B, n))
-    E, G = _n_link_geometry(q + zero, lengths, mask_ik)
-    return (_n_link_regressor(qdot + zero, zeta + zero, zetad + zero, lengths, gravity,
-                              mask_ik, E, G),)
+    phi = ko.cumsum1(q + zero)
+    c = np.cos(phi)
+    s = np.sin(phi)
+    lc = lengths * c
+    ls = lengths * s
+    Ox = ko.cumsum1(lc) - lc                       # joint origins O_1 = 0, O_2, ..., O_n
+    Oy = ko.cumsum1(ls) - ls
+    u = -ko.cumsum1(qdot + zero) * ko.cumsum1(zeta + zero)
+    v = ko.cumsum1(zetad + zero)
+    Qx = c * u - s * v
+    Qy = s * u + c * v
+    lq = lengths * Qx
+    Ax = ko.cumsum1(lq) - lq
+    lq = lengths * Qy
+    Ay = ko.cumsum1(lq) - lq
+    g = gravity[:, None] + zero
+    L = np.ones((B, n, 3))
+    L[:, :, 1] = Ox
+    L[:, :, 2] = Oy
+    R = np.zeros((B, 3, 4 * n))
+    R[:, 0, 0::4] = Ox * Ay - Oy * Ax + g * Ox
+    R[:, 1, 0::4] = -Ay - g
+    R[:, 2, 0::4] = Ax
+    R[:, 0, 1::4] = c * Ay - s * Ax + g * c + Ox * Qy - Oy * Qx
+    R[:, 1, 1::4] = -Qy
+    R[:, 2, 1::4] = Qx
+    R[:, 0, 2::4] = -g * s - c * Ax - s * Ay + Ox * Qx + Oy * Qy
+    R[:, 1, 2::4] = -Qx
+    R[:, 2, 2::4] = -Qy
+    R[:, 0, 3::4] = v
+    return (ko.bmatmul(L, R) * mask,)
 
 
 @register
@@ -892,10 +896,8 @@ class NLinkArm(MechanicalPlant):
         self.set_param("lengths", lengths)
         self.set_param("theta", theta)
         self.set_param("gravity", gravity)
-        self.set_param("upper", np.triu(np.ones((n, n))))           # [a, b] = (a <= b)
-        self.set_param("lower", np.tril(np.ones((n, n)), -1))       # [a, b] = (a > b)
         self.set_kernels(output=n_link_output, derivative=n_link_derivative,
-                         params=("lengths", "theta", "gravity", "upper", "lower"))
+                         params=("lengths", "theta", "gravity"))
 
 
 @register
@@ -935,9 +937,9 @@ class NLinkRegressor(Block):
         self.declare_output("Y", (n, 4 * n), feedthrough=("q", "qdot", "zeta", "zetad"))
         self.set_param("lengths", lengths)
         self.set_param("gravity", gravity)
-        self.set_param("mask_ik", np.tril(np.ones((n, n))))         # [i, k] = (k <= i)
-        self.set_kernels(output=n_link_regressor_output,
-                         params=("lengths", "gravity", "mask_ik"))
+        # [k, 4i + c] = (k <= i): joint k moves the links i >= k
+        self.set_param("mask", np.repeat(np.triu(np.ones((n, n))), 4, axis=1))
+        self.set_kernels(output=n_link_regressor_output, params=("lengths", "gravity", "mask"))
 
     def check_source(self, port, source, source_port):
         """At load time: the NLinkArm driving ``q`` must have these lengths and gravity."""

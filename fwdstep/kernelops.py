@@ -32,6 +32,12 @@ def bsolve(M, v):
     return np.linalg.solve(M, v[:, :, None])[:, :, 0]
 
 
+def symupper(M):
+    """S[b] symmetric with S[b, i, j] = M[b, min(i, j), max(i, j)] (M's upper triangle
+    mirrored): M (B, n, n) -> (B, n, n)."""
+    return np.triu(M) + np.triu(M, 1).transpose((0, 2, 1))
+
+
 def cumsum1(a):
     """Cumulative sum along axis 1 of a 2-d array (real or complex)."""
     return np.cumsum(a, axis=1)
