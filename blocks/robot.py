@@ -720,8 +720,8 @@ def _suffix(a):
 
 def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity):
     """dx = [qdot, H^-1 (tau + tau_star - C qdot - g)] with H, C, g of NLinkArm's docstring,
-    in O(n^2) real arithmetic from sums over the outer links.  With O_i the origin of joint
-    i, w_i = s_i E_i the first moment of link i (theta's [sx, sy] rotated by
+    in O(n^2) from sums over the outer links (points of the plane as complex numbers, a.b
+    = Re(conj(a) b), a x b = Im(conj(a) b)).  With O_i the origin of joint i, w_i = s_i E_i the first moment of link i (theta's [sx, sy] rotated by
     phi_i = q_1 + ... + q_i) and S_b = sum_{i>=b} (m_i O_i + w_i), for a <= b:
     H_ab = sum_{i>=b} (m_i |O_i|^2 + 2 O_i.w_i + J_i) - (O_a + O_b).S_b
            + (sum_{i>=b} m_i) O_a.O_b;
@@ -732,41 +732,32 @@ def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity):
     q = x[:, :n]
     qdot = x[:, n:]
     phid = ko.cumsum1(qdot)
-    phi = ko.cumsum1(q)
-    c = np.cos(phi)
-    s = np.sin(phi)
-    lc = lengths * c
-    ls = lengths * s
-    Ox = ko.cumsum1(lc) - lc                       # joint origins O_1 = 0, O_2, ..., O_n
-    Oy = ko.cumsum1(ls) - ls
+    E = np.exp(1j * ko.cumsum1(q))                 # link directions, as complex numbers
+    lE = lengths * E
+    O = ko.cumsum1(lE) - lE                        # joint origins O_1 = 0, O_2, ..., O_n
     m = theta[:, 0::4]
-    wx = theta[:, 1::4] * c - theta[:, 2::4] * s   # first moments w_i = s_i E_i
-    wy = theta[:, 1::4] * s + theta[:, 2::4] * c
-    P = m * (Ox * Ox + Oy * Oy) + 2.0 * (Ox * wx + Oy * wy) + theta[:, 3::4]
-    SM = _suffix(m)
-    SX = _suffix(m * Ox + wx)
-    SY = _suffix(m * Oy + wy)
-    # H_ab = row_b + O_a.(SM_b O_b - S_b) for a <= b: a product of (B, n, 3) and (B, 3, n)
-    row = _suffix(P) - Ox * SX - Oy * SY
+    w = (theta[:, 1::4] + 1j * theta[:, 2::4]) * E  # first moments w_i = s_i E_i
+    P = np.real(np.conj(O) * (m * O + 2.0 * w)) + theta[:, 3::4]
+    S = _suffix(m * O + w)
+    D = _suffix(m) * O - S
+    # H_ab = row_b + O_a.D_b for a <= b: a product of (B, n, 3) and (B, 3, n), mirrored
+    row = _suffix(P) - np.real(np.conj(O) * S)
     B = row.shape[0]
     L = np.ones((B, n, 3))
-    L[:, :, 1] = Ox
-    L[:, :, 2] = Oy
+    L[:, :, 1] = np.real(O)
+    L[:, :, 2] = np.imag(O)
     R = np.empty((B, 3, n))
     R[:, 0, :] = row
-    R[:, 1, :] = SM * Ox - SX
-    R[:, 2, :] = SM * Oy - SY
+    R[:, 1, :] = np.real(D)
+    R[:, 2, :] = np.imag(D)
     H = ko.symupper(ko.bmatmul(L, R))
     v2 = phid * phid
-    lv = lc * v2
-    Ax = lv - ko.cumsum1(lv)                       # A_i = -sum_{j<i} l_j phidot_j^2 E_j
-    lv = ls * v2
-    Ay = lv - ko.cumsum1(lv)
+    lv = lE * v2
+    A = lv - ko.cumsum1(lv)                        # A_i = -sum_{j<i} l_j phidot_j^2 E_j
     g = gravity[:, None]
-    Fx = m * Ax - v2 * wx
-    Fy = m * Ay - v2 * wy + g * m
-    T = Ox * Fy - Oy * Fx + wx * Ay - wy * Ax + g * wx
-    bias = _suffix(T) - Ox * _suffix(Fy) + Oy * _suffix(Fx)             # C qdot + g
+    F = m * A - v2 * w + 1j * (g * m)
+    T = np.imag(np.conj(O) * F + np.conj(w) * A) + g * np.real(w)
+    bias = _suffix(T) - np.imag(np.conj(O) * _suffix(F))              # C qdot + g
     rhs = tau + tau_star - bias
     dx = np.empty((B, 2 * n))
     dx[:, :n] = qdot

@@ -9,6 +9,8 @@ axis broadcasts: an operand of leading length 1 is shared by every variant.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 
@@ -35,12 +37,20 @@ def bsolve(M, v):
 def symupper(M):
     """S[b] symmetric with S[b, i, j] = M[b, min(i, j), max(i, j)] (M's upper triangle
     mirrored): M (B, n, n) -> (B, n, n)."""
-    return np.triu(M) + np.triu(M, 1).transpose((0, 2, 1))
+    i, j = _strict_lower(M.shape[1])
+    S = M.copy()
+    S[:, i, j] = M[:, j, i]
+    return S
+
+
+@functools.lru_cache(maxsize=128)
+def _strict_lower(n):
+    return np.tril_indices(n, -1)
 
 
 def cumsum1(a):
     """Cumulative sum along axis 1 of a 2-d array (real or complex)."""
-    return np.cumsum(a, axis=1)
+    return np.add.accumulate(a, axis=1)
 
 
 def take1(u, index):
