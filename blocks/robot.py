@@ -768,7 +768,8 @@ def n_link_derivative(t, x, tau, tau_star, lengths, theta, gravity):
 def n_link_regressor_output(t, x, q, qdot, zeta, zetad, lengths, gravity, mask):
     """Y (B, n, 4n) of NLinkRegressor: H zetad + C zeta + g = Y theta with
     C = sum_i m_i Jv_i^T dJv_i/dt (so Hdot - 2C is skew-symmetric), theta ordered per link
-    [m, sx, sy, J] as n_link_theta.  In real arithmetic, with E_i = exp(j phi_i),
+    [m, sx, sy, J] as n_link_theta.  Points of the plane as complex numbers (a.b =
+    Re(conj(a) b), a x b = Im(conj(a) b)); with E_i = exp(j phi_i),
     O_i the joint origins, Q_i = E_i (j psidot_i - phidot_i psi_i) (psi, psidot, phidot the
     cumulative sums of zeta, zetad, qdot) and A_i = sum_{j<i} l_j Q_j, every entry is
     Y[k, 4i + c] = alpha_ci + Ox_k beta_ci + Oy_k gamma_ci for k <= i (0 beyond; ``mask``):
@@ -779,35 +780,29 @@ def n_link_regressor_output(t, x, q, qdot, zeta, zetad, lengths, gravity, mask):
     B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0], gravity.shape[0])
     n = q.shape[1]
     zero = np.zeros((B, n))
-    phi = ko.cumsum1(q + zero)
-    c = np.cos(phi)
-    s = np.sin(phi)
-    lc = lengths * c
-    ls = lengths * s
-    Ox = ko.cumsum1(lc) - lc                       # joint origins O_1 = 0, O_2, ..., O_n
-    Oy = ko.cumsum1(ls) - ls
-    u = -ko.cumsum1(qdot + zero) * ko.cumsum1(zeta + zero)
+    E = np.exp(1j * ko.cumsum1(q + zero))          # link directions, as complex numbers
+    lE = lengths * E
+    O = ko.cumsum1(lE) - lE                        # joint origins O_1 = 0, O_2, ..., O_n
     v = ko.cumsum1(zetad + zero)
-    Qx = c * u - s * v
-    Qy = s * u + c * v
-    lq = lengths * Qx
-    Ax = ko.cumsum1(lq) - lq
-    lq = lengths * Qy
-    Ay = ko.cumsum1(lq) - lq
+    Q = E * (v * 1j - ko.cumsum1(qdot + zero) * ko.cumsum1(zeta + zero))
+    lQ = lengths * Q
+    A = ko.cumsum1(lQ) - lQ
     g = gravity[:, None] + zero
+    EA = np.conj(E) * A
+    OQ = np.conj(O) * Q
     L = np.ones((B, n, 3))
-    L[:, :, 1] = Ox
-    L[:, :, 2] = Oy
+    L[:, :, 1] = np.real(O)
+    L[:, :, 2] = np.imag(O)
     R = np.zeros((B, 3, 4 * n))
-    R[:, 0, 0::4] = Ox * Ay - Oy * Ax + g * Ox
-    R[:, 1, 0::4] = -Ay - g
-    R[:, 2, 0::4] = Ax
-    R[:, 0, 1::4] = c * Ay - s * Ax + g * c + Ox * Qy - Oy * Qx
-    R[:, 1, 1::4] = -Qy
-    R[:, 2, 1::4] = Qx
-    R[:, 0, 2::4] = -g * s - c * Ax - s * Ay + Ox * Qx + Oy * Qy
-    R[:, 1, 2::4] = -Qx
-    R[:, 2, 2::4] = -Qy
+    R[:, 0, 0::4] = np.imag(np.conj(O) * A) + g * np.real(O)
+    R[:, 1, 0::4] = -np.imag(A) - g
+    R[:, 2, 0::4] = np.real(A)
+    R[:, 0, 1::4] = np.imag(EA) + g * np.real(E) + np.imag(OQ)
+    R[:, 1, 1::4] = -np.imag(Q)
+    R[:, 2, 1::4] = np.real(Q)
+    R[:, 0, 2::4] = np.real(OQ) - np.real(EA) - g * np.imag(E)
+    R[:, 1, 2::4] = -np.real(Q)
+    R[:, 2, 2::4] = -np.imag(Q)
     R[:, 0, 3::4] = v
     return (ko.bmatmul(L, R) * mask,)
 
