@@ -322,83 +322,244 @@ def render_dot(source: str, fmt: str) -> bytes:
 # ---------------------------------------------------------------------------- fallback
 def layered_positions(picture: Picture) -> dict:
     """Box -> (layer, row): longest-path layers of the diagram without its feedback edges,
-    rows ordered by the barycentre of each box's predecessors (one sweep)."""
+    each source moved right up to its first consumer (a tag or a constant sits beside the
+    block it feeds); rows ordered by barycentre sweeps (see ``_layout``)."""
+    lay = _layout(picture)
+    return {k: (lay.layer[k], float(r)) for k, r in lay.row.items() if k in picture.boxes}
+
+
+@dataclass
+class _Layout:
+    layer: dict          # node -> layer (boxes and the dummy points of long wires)
+    row: dict            # node -> position in its layer
+    chains: dict         # edge index -> [dummy nodes], for wires spanning several layers
+
+
+def _layout(picture: Picture) -> _Layout:
     g = nx.DiGraph()
     g.add_nodes_from(picture.boxes)
-    g.add_edges_from((e[0], e[2]) for e in picture.edges if not e[5] and e[0] != e[2])
-    if not nx.is_directed_acyclic_graph(g):         # a cycle the search did not break
+    forward = [(k, e) for k, e in enumerate(picture.edges) if not e[5] and e[0] != e[2]]
+    g.add_edges_from((e[0], e[2]) for _, e in forward)
+    while not nx.is_directed_acyclic_graph(g):      # a cycle the search did not break
         g.remove_edges_from(nx.find_cycle(g))
     layer = {}
     for n in nx.topological_sort(g):
         layer[n] = max((layer[p] + 1 for p in g.predecessors(n)), default=0)
-    pos, rows = {}, {}
-    for n in sorted(g, key=lambda n: layer[n]):
-        preds = [pos[p][1] for p in g.predecessors(n) if p in pos]
-        rows.setdefault(layer[n], []).append((sum(preds) / len(preds) if preds else 0.0, n))
-    for lay, items in rows.items():
-        for r, (_, n) in enumerate(sorted(items, key=lambda x: x[0])):
-            pos[n] = (lay, float(r))
-    return pos
+    for n in reversed(list(nx.topological_sort(g))):   # sources next to their consumers
+        if g.in_degree(n) == 0 and g.out_degree(n) > 0:
+            layer[n] = max(layer[n], min(layer[s] for s in g.successors(n)) - 1)
+    # long wires get one dummy point per layer they cross, so they never cross a box
+    chains, nodes_in = {}, {}
+    adj_up: dict = {}
+    for k, e in forward:
+        if (e[0], e[2]) not in g.edges:
+            continue
+        chain, prev = [], e[0]
+        for lay in range(layer[e[0]] + 1, layer[e[2]]):
+            d = f"\0{k}:{lay}"
+            layer[d] = lay
+            chain.append(d)
+            adj_up.setdefault(d, []).append(prev)
+            prev = d
+        adj_up.setdefault(e[2], []).append(prev)
+        chains[k] = chain
+    for n, lay in layer.items():
+        nodes_in.setdefault(lay, []).append(n)
+    adj_down: dict = {}
+    for n, ups in adj_up.items():
+        for u in ups:
+            adj_down.setdefault(u, []).append(n)
+    order = {lay: sorted(ns, key=lambda n: list(picture.boxes).index(n)
+                         if n in picture.boxes else 0) for lay, ns in nodes_in.items()}
+    frame_of = {n: (picture.boxes[n].frame[:1] if n in picture.boxes else ()) for n in layer}
+    for sweep in range(8):                            # barycentre, down then up
+        layers = sorted(order) if sweep % 2 == 0 else sorted(order, reverse=True)
+        adj = adj_up if sweep % 2 == 0 else adj_down
+        for lay in layers:
+            pos = {n: i for ln in order.values() for i, n in enumerate(ln)}
+            def bary(n, pos=pos, adj=adj):
+                nb = [pos[m] for m in adj.get(n, []) if m in pos]
+                return sum(nb) / len(nb) if nb else pos[n]
+            bc = {n: bary(n) for n in order[lay]}
+            group = {}                                # a subsystem's boxes stay together
+            for n in order[lay]:
+                group.setdefault(frame_of[n], []).append(bc[n])
+            gmean = {f: sum(v) / len(v) for f, v in group.items()}
+            order[lay].sort(key=lambda n: (gmean[frame_of[n]] if frame_of[n] else bc[n],
+                                           frame_of[n], bc[n]))
+    row = {n: i for ln in order.values() for i, n in enumerate(ln)}
+    return _Layout(layer, row, chains)
+
+
+_FONT = 7.0          # points, the box titles; ports and shapes are smaller
+_CHAR = 0.0078       # inches per point of font size and character (DejaVu Sans average)
+
+
+def _box_size(box: Box) -> tuple:
+    if box.kind.startswith("tag"):
+        return (0.3 + _CHAR * 6.5 * len(box.title), 0.22)
+    title = max(len(box.title) * _FONT, len(box.kind) * 5.5, len(f"eq. {box.equation}") * 5.5)
+    ports = 2 * max([len(p) for p in box.inputs + box.outputs] or [0]) * 5.0  # text centred
+    rows = max(len(box.inputs), len(box.outputs), 3 if box.equation else 2)
+    return (0.3 + _CHAR * (title + ports), 0.16 * rows + 0.12)
 
 
 def draw_layered(picture: Picture):
-    """A matplotlib Figure (Agg canvas, no pyplot) of the picture in the layered layout."""
+    """A matplotlib Figure (Agg canvas, no pyplot) of the picture in a layered layout: the
+    forward path left to right, long wires routed through the gaps between boxes, feedback
+    wires (dashed red) along lanes under the diagram, subsystems as labelled frames."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from matplotlib.patches import FancyArrowPatch, FancyBboxPatch
-    pos = layered_positions(picture)
-    dx, dy = 3.2, 1.6
-    n_layers = max(p[0] for p in pos.values()) + 1
-    n_rows = max(p[1] for p in pos.values()) + 1
+    from matplotlib.patches import FancyBboxPatch, PathPatch
+    from matplotlib.path import Path
+    lay = _layout(picture)
+    size = {k: _box_size(b) for k, b in picture.boxes.items()}
+    n_layers = max(lay.layer.values()) + 1
+    width = [max([size[n][0] for n in lay.layer if lay.layer[n] == i and n in size] + [0.3])
+             for i in range(n_layers)]
+    gap = 0.75
+    x_of = [sum(width[:i]) + gap * i for i in range(n_layers)]
+    # vertical positions: stacked in row order, then pulled towards their neighbours
+    height = {n: size[n][1] if n in size else 0.06 for n in lay.layer}
+    by_layer: dict = {}
+    for n in sorted(lay.layer, key=lambda n: lay.row[n]):
+        by_layer.setdefault(lay.layer[n], []).append(n)
+    y = {}
+    for ns in by_layer.values():
+        top = 0.0
+        for n in ns:
+            y[n] = top + height[n] / 2
+            top += height[n] + 0.22
+    nbrs: dict = {}
+    for k, e in enumerate(picture.edges):
+        if e[5]:
+            continue
+        path = [e[0], *lay.chains.get(k, []), e[2]]
+        for a, b in zip(path, path[1:]):
+            nbrs.setdefault(a, []).append(b)
+            nbrs.setdefault(b, []).append(a)
+    for _ in range(12):
+        for ns in by_layer.values():
+            want = [sum(y[m] for m in nbrs[n]) / len(nbrs[n]) if nbrs.get(n) else y[n]
+                    for n in ns]
+            for i, n in enumerate(ns):               # keep the order, no overlaps
+                lo = (y[ns[i - 1]] + (height[ns[i - 1]] + height[n]) / 2 + 0.22) if i else -1e9
+                y[n] = max(want[i], lo)
+            for i in range(len(ns) - 2, -1, -1):
+                hi = y[ns[i + 1]] - (height[ns[i + 1]] + height[ns[i]]) / 2 - 0.22
+                y[ns[i]] = min(y[ns[i]], hi)
+    shift, end = 0.0, None                  # close empty horizontal bands (> 0.5 in)
+    for n in sorted(y, key=lambda n: y[n] - height[n] / 2):
+        top = y[n] - height[n] / 2
+        if end is not None and top - end > 0.5:
+            shift += top - end - 0.5
+        end = max(end if end is not None else top, y[n] + height[n] / 2)
+        y[n] -= shift
+    y0 = min(y[n] - height[n] / 2 for n in y)
+    y = {n: v - y0 for n, v in y.items()}
+    bottom = max(y[n] + height[n] / 2 for n in y)
+    cx = {n: x_of[lay.layer[n]] + width[lay.layer[n]] / 2 for n in lay.layer}
+
+    def port_y(key: str, port: str, side: str) -> float:
+        ports = picture.boxes[key].inputs if side == "in" else picture.boxes[key].outputs
+        if port not in ports or len(ports) == 1 or picture.boxes[key].kind.startswith("tag"):
+            return y[key]
+        h = height[key] - 0.12
+        return y[key] - h / 2 + (ports.index(port) + 0.5) * h / len(ports)
+
     back = [e for e in picture.edges if e[5]]
-    sag = 0.15 * dx * max([abs(pos[e[0]][0] - pos[e[2]][0]) + 1 for e in back], default=0)
-    fig = Figure(figsize=(max(6, 1.9 * n_layers), max(3, 1.0 * n_rows + 1 + sag / dy)))
+    lanes = 0.16 * len(back)
+    fig_w = max(6.0, x_of[-1] + width[-1] + 0.6)
+    import textwrap
+    title = "\n".join(textwrap.wrap(" ".join(picture.title.split()),
+                                    max(40, int((fig_w - 0.5) / (_CHAR * (_FONT + 2))))))
+    pad_top = 0.45 + 0.18 * (title.count("\n") + 1)
+    fig_h = bottom + lanes + pad_top + 0.5
+    fig = Figure(figsize=(fig_w, max(3.0, fig_h)))
     FigureCanvasAgg(fig)
-    ax = fig.add_axes([0, 0, 1, 0.94])
+    ax = fig.add_axes([0, 0, 1, 1])
     ax.set_axis_off()
-    centre = {k: (p[0] * dx, -p[1] * dy) for k, p in pos.items()}
-    w, h = 2.2, 1.0
-    for key, frame_label in picture.frames.items():        # frames behind their boxes
-        members = [centre[k] for k, b in picture.boxes.items() if key in b.frame]
+    ax.set_xlim(-0.3, fig_w - 0.3)
+    ax.set_ylim(bottom + lanes + 0.35, -pad_top)            # y grows downwards, in inches
+    for key, label in sorted(picture.frames.items(), key=lambda kv: kv[0].count("/")):
+        members = [k for k, b in picture.boxes.items() if key in b.frame]
         if not members:
             continue
-        xs, ys = [m[0] for m in members], [m[1] for m in members]
         depth = key.count("/")
-        pad = 0.25 - 0.05 * depth
-        ax.add_patch(FancyBboxPatch((min(xs) - w / 2 - pad, min(ys) - h / 2 - pad),
-                                    max(xs) - min(xs) + w + 2 * pad,
-                                    max(ys) - min(ys) + h + 2 * pad + 0.3,
-                                    boxstyle="round,pad=0.05", fc="#f4f6f7", ec="#7f8c8d",
-                                    lw=0.8, zorder=0))
-        ax.text(min(xs) - w / 2 - pad + 0.05, max(ys) + h / 2 + pad + 0.25, frame_label,
-                fontsize=6.5, va="top", color="#2c3e50", zorder=1)
+        pad = 0.16 - 0.04 * depth
+        x0 = min(cx[k] - size[k][0] / 2 for k in members) - pad
+        x1 = max(cx[k] + size[k][0] / 2 for k in members) + pad
+        t0 = min(y[k] - height[k] / 2 for k in members) - pad - 0.16
+        t1 = max(y[k] + height[k] / 2 for k in members) + pad
+        ax.add_patch(FancyBboxPatch((x0, t0), x1 - x0, t1 - t0, boxstyle="round,pad=0.02",
+                                    fc="#f4f6f7", ec="#7f8c8d", lw=0.8, zorder=0, alpha=0.9))
+        ax.text(x0 + 0.05, t0 + 0.03, label, fontsize=_FONT - 0.5, va="top", color="#2c3e50",
+                zorder=1)
     for key, box in picture.boxes.items():
-        x, y = centre[key]
-        ax.add_patch(FancyBboxPatch((x - w / 2, y - h / 2), w, h, boxstyle="round,pad=0.02",
+        w, h = size[key]
+        x, yy = cx[key], y[key]
+        if box.kind.startswith("tag"):
+            color = FEEDBACK_COLOR if box.kind == "tag back" else TAG_COLOR
+            ax.add_patch(FancyBboxPatch((x - w / 2, yy - h / 2), w, h,
+                                        boxstyle="round,pad=0.0,rounding_size=0.08",
+                                        fc="white", ec=color, lw=0.8, zorder=2))
+            text = f"▶ {box.title}" if box.inputs else f"{box.title} ▶"
+            ax.text(x, yy, text, ha="center", va="center", fontsize=_FONT - 0.5, color=color,
+                    zorder=3)
+            continue
+        ax.add_patch(FancyBboxPatch((x - w / 2, yy - h / 2), w, h, boxstyle="square,pad=0",
                                     fc="white", ec="#2c3e50", lw=0.9, zorder=2))
-        text = f"{box.title}\n{box.kind}" + (f"\neq. {box.equation}" if box.equation else "")
-        ax.text(x, y, text, ha="center", va="center", fontsize=6.5, zorder=3)
+        lines = [(box.title, _FONT, "bold", "#000000"), (box.kind, _FONT - 1.5, "normal",
+                                                         "#555555")]
+        if box.equation:
+            lines.append((f"eq. {box.equation}", _FONT - 1.5, "normal", "#1a5276"))
+        for i, (text, fs, weight, color) in enumerate(lines):
+            ax.text(x, yy + (i - (len(lines) - 1) / 2) * 0.13, text, ha="center",
+                    va="center", fontsize=fs, fontweight=weight, color=color, zorder=3)
         for side, ports in ((-1, box.inputs), (1, box.outputs)):
-            for i, port in enumerate(ports):
-                py = y + h / 2 - (i + 1) * h / (len(ports) + 1)
-                ax.text(x + side * (w / 2 - 0.04), py, port, fontsize=4.5, zorder=3,
-                        ha="left" if side < 0 else "right", va="center", color="#555555")
-    for src, sp, dst, dp, shape, back in picture.edges:
-        (x0, y0), (x1, y1) = centre[src], centre[dst]
-        so, di = picture.boxes[src].outputs, picture.boxes[dst].inputs
-        y0 += h / 2 - (so.index(sp) + 1) * h / (len(so) + 1) if sp in so else 0
-        y1 += h / 2 - (di.index(dp) + 1) * h / (len(di) + 1) if dp in di else 0
-        color = FEEDBACK_COLOR if back else "#34495e"
-        arrow = FancyArrowPatch((x0 + w / 2, y0), (x1 - w / 2, y1), arrowstyle="-|>",
-                                mutation_scale=7, lw=0.7, color=color, zorder=1,
-                                linestyle="--" if back else "-",
-                                connectionstyle="arc3,rad=-0.45" if back else "arc3,rad=0.0")
-        ax.add_patch(arrow)
-        ax.text((x0 + x1) / 2, (y0 + y1) / 2 + (0.35 if back else 0.08), shape, fontsize=5,
-                color=color, ha="center", zorder=3)
-    ax.set_xlim(-dx / 2 - 0.5, (n_layers - 1) * dx + dx / 2 + 0.5)
-    ax.set_ylim(-(n_rows - 1) * dy - dy - sag, dy)
-    fig.suptitle(picture.title, fontsize=9)
+            for port in ports:
+                py = port_y(key, port, "in" if side < 0 else "out")
+                ax.text(x + side * (w / 2 - 0.04), py, port, fontsize=_FONT - 2, zorder=3,
+                        ha="left" if side < 0 else "right", va="center", color="#34495e")
+
+    def curve(points: list, color: str, dashed: bool = False, arrow: bool = True) -> None:
+        verts, codes = [points[0]], [Path.MOVETO]
+        for (xa, ya), (xb, yb) in zip(points, points[1:]):
+            dx = (xb - xa) / 2
+            verts += [(xa + dx, ya), (xb - dx, yb), (xb, yb)]
+            codes += [Path.CURVE4] * 3
+        ax.add_patch(PathPatch(Path(verts, codes), fc="none", ec=color, lw=0.7, zorder=1,
+                               ls=(0, (3, 2)) if dashed else "-"))
+        if arrow:
+            xb, yb = points[-1]
+            ax.annotate("", (xb, yb), (xb - 0.09, yb), zorder=2,
+                        arrowprops=dict(arrowstyle="-|>", color=color, lw=0.7,
+                                        mutation_scale=6, shrinkA=0, shrinkB=0))
+
+    lane = bottom + 0.25
+    for k, (src, sp, dst, dp, shape, is_back) in enumerate(picture.edges):
+        start = (cx[src] + size[src][0] / 2, port_y(src, sp, "out"))
+        end = (cx[dst] - size[dst][0] / 2, port_y(dst, dp, "in"))
+        if is_back or src == dst:                   # out to the right, under, back in
+            xr, xl = start[0] + 0.15, end[0] - 0.15
+            pts = [start, (xr, start[1]), (xr, lane), (xl, lane), (xl, end[1]), end]
+            verts = pts[:-1]
+            ax.add_patch(PathPatch(Path(verts, [Path.MOVETO] + [Path.LINETO] * 4), fc="none",
+                                   ec=FEEDBACK_COLOR, lw=0.7, ls=(0, (3, 2)), zorder=1))
+            ax.annotate("", end, (xl, end[1]), zorder=2,
+                        arrowprops=dict(arrowstyle="-|>", color=FEEDBACK_COLOR, lw=0.7,
+                                        mutation_scale=6, shrinkA=0, shrinkB=0))
+            ax.text((xl + xr) / 2, lane - 0.03, shape, fontsize=_FONT - 2.5,
+                    color=FEEDBACK_COLOR, ha="center", zorder=3)
+            lane += 0.16
+            continue
+        pts = [start] + [(cx[d], y[d]) for d in lay.chains.get(k, [])] + [end]
+        curve(pts, "#34495e")
+        if shape:
+            ax.text(start[0] + 0.06, start[1] - 0.03, shape, fontsize=_FONT - 2.5,
+                    color="#34495e", ha="left", va="bottom", zorder=3)
+    ax.text(fig_w / 2 - 0.3, -pad_top + 0.12, title, ha="center", va="top",
+            fontsize=_FONT + 2)
     return fig
 
 
@@ -419,7 +580,8 @@ def picture_for(diagram, depth: int | None = None, tags: str = "auto") -> Pictur
 def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "auto",
                  force: bool = False, tags: str = "auto") -> str:
     """Write the picture of ``diagram`` to ``path`` (.svg, .png or .pdf); the engine used.
-    An existing file that fwdstep did not write is replaced only with ``force``.  ``tags``:
+    The matplotlib fallback draws subsystems as boxes unless ``depth`` is given (its frames
+    would overlap: it has no cluster layout).  An existing file that fwdstep did not write is replaced only with ``force``.  ``tags``:
     "on" draws widely used signals as named tags (``with_tags``), "off" as wires, "auto"
     (default) tags them when the picture has more than TAG_BOXES boxes."""
     fmt = os.path.splitext(path)[1].lstrip(".").lower()
@@ -428,19 +590,28 @@ def draw_diagram(diagram, path: str, depth: int | None = None, engine: str = "au
                           f"{', '.join('.' + f for f in FORMATS)}")
     if os.path.isdir(path):
         raise OutputError(f"cannot write the picture to {path}: it is a directory")
-    picture = picture_for(diagram, depth, tags)
     if engine == "auto":
         engine = "dot" if shutil.which("dot") else "matplotlib"
+    used = engine
+    if engine == "matplotlib" and depth is None and any("/" in b.name for b in diagram.blocks):
+        depth, used = 0, "matplotlib, subsystems as boxes: --depth 1 opens them"
+    picture = picture_for(diagram, depth, tags)
     if engine == "dot":
         data = render_dot(diagram_dot(picture), fmt)
     else:
-        import io
-        fig = draw_layered(picture)
-        buf = io.BytesIO()
-        fig.savefig(buf, format=fmt, dpi=200)
-        data = buf.getvalue()
+        data = layered_bytes(picture, fmt)
     _write(path, data, force)
-    return engine
+    return used
+
+
+def layered_bytes(picture: Picture, fmt: str) -> bytes:
+    """The fallback drawing as ``fmt`` bytes; large pictures at a lower resolution."""
+    import io
+    fig = draw_layered(picture)
+    buf = io.BytesIO()
+    inches = max(fig.get_size_inches())
+    fig.savefig(buf, format=fmt, dpi=200 if inches <= 20 else 150)
+    return buf.getvalue()
 
 
 def _write(path: str, data: bytes, force: bool = False) -> None:

@@ -33,6 +33,8 @@ th{background:#f4f6f7} .num{text-align:right;font-family:monospace}
 .ok{color:#1e8449;font-weight:bold} .bad{color:#c0392b;font-weight:bold}
 figure{margin:1em 0} figcaption{font-size:.85em;color:#555}
 img{max-width:100%;border:1px solid #eee} .diagram{overflow:auto;max-height:900px}
+.diagram img{max-width:none}
+
 pre{background:#f8f9f9;padding:.6em;white-space:pre-wrap;font-size:.85em}
 """
 
@@ -81,7 +83,7 @@ def diagram_picture(summary: dict) -> tuple:
     if not path or not os.path.isfile(path):
         return None, f"the diagram file {path} is not here; no picture"
     from .compiler import load_diagram
-    from .drawing import build_picture, diagram_dot, draw_layered, render_dot
+    from .drawing import diagram_dot, layered_bytes, picture_for, render_dot
     from .errors import FwdstepError
     params = summary.get("parameters")
     try:
@@ -89,13 +91,12 @@ def diagram_picture(summary: dict) -> tuple:
             d = load_diagram(path, params if isinstance(params, dict) else None)
         except FwdstepError:
             d = load_diagram(path)
-        pic = build_picture(d)
         if shutil.which("dot"):
-            return render_dot(diagram_dot(pic), "svg"), ""
-        import io
-        buf = io.BytesIO()
-        draw_layered(pic).savefig(buf, format="svg")
-        return buf.getvalue(), "drawn without graphviz (install graphviz for a better layout)"
+            return render_dot(diagram_dot(picture_for(d)), "svg"), ""
+        nested = any("/" in b.name for b in d.blocks)     # as fwdstep graph's fallback
+        return (layered_bytes(picture_for(d, 0 if nested else None), "svg"),
+                "drawn without graphviz (install graphviz for a better layout)"
+                + ("; subsystems as boxes" if nested else ""))
     except FwdstepError as exc:
         return None, f"no picture: {exc}"
 

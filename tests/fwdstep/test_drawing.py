@@ -229,3 +229,34 @@ def test_small_diagrams_keep_their_wires_and_large_ones_get_tags():
                       if k.endswith(":goto"))
     assert tags(small, "auto") == [] and tags(small, "on") == ["arm.q", "arm.qdot"]
     assert tags(large, "auto") == tags(large, "on") != [] and tags(large, "off") == []
+
+
+def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path, capsys):
+    """Theorem 9 without graphviz: subsystems drawn as boxes by default (said on stdout), no
+    two boxes overlap, every forward wire runs left to right through the gaps between
+    layers, and the text is drawn at a readable size."""
+    from fwdstep.drawing import _box_size, _layout, draw_layered, picture_for
+    out = tmp_path / "t9.png"
+    assert main(["graph", "diagrams/theorem9.yaml", "--engine", "matplotlib",
+                 "-o", str(out)]) == 0
+    assert capsys.readouterr().out == (f"wrote {out} (60 blocks, layout: matplotlib, "
+                                       "subsystems as boxes: --depth 1 opens them)\n")
+    d = fwdstep.load_diagram("diagrams/theorem9.yaml")
+    pic = picture_for(d, depth=0)
+    assert {"plant", "qds", "torque"} <= set(pic.boxes) and pic.frames == {}
+    fig = draw_layered(pic)
+    boxes = [p for p in fig.axes[0].patches if type(p).__name__ == "FancyBboxPatch"]
+    rects = [(b.get_x(), b.get_y(), b.get_x() + b.get_width(), b.get_y() + b.get_height())
+             for b in boxes]
+    assert len(rects) == len(pic.boxes)
+    for i, a in enumerate(rects):
+        for b in rects[i + 1:]:
+            assert a[2] <= b[0] or b[2] <= a[0] or a[3] <= b[1] or b[3] <= a[1], (a, b)
+    lay = _layout(pic)
+    for k, e in enumerate(pic.edges):
+        if not e[5]:
+            path = [e[0], *lay.chains.get(k, []), e[2]]
+            assert all(lay.layer[b] == lay.layer[a] + 1 for a, b in zip(path, path[1:]))
+    sizes = [t.get_fontsize() for t in fig.axes[0].texts if t.get_text()]
+    assert min(sizes) >= 4.5 and fig.get_size_inches()[0] < 40
+    assert all(_box_size(b)[0] > 0.3 for b in pic.boxes.values())
