@@ -380,13 +380,18 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                     prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
                 newly = (codes != 0) & alive
                 if newly.any():
-                    died_at[newly] = n_next[newly] * h     # t + h of the failing step
-                    alive &= ~newly
+                    died_at[newly] = n_next[newly] * h     # t + h of the failing step,
+                    alive &= ~newly                        # status 2: t of the record
                     if not alive.any():
+                        last = int(np.argmax(n_next))
                         n = int(n_next.max()) - 1
                         t = n * h
                         row = int(rows.max())
                         status = "diverged"
+                        if codes[last] == 2:         # an unrecorded output not finite
+                            t = float(n_next[last] * h)
+                            message, x = _compiled_output_failure(d, t, x, last)
+                            break
                         message = _divergence_message(d, x, bound, t + h)
                         break
                 n = n1
@@ -398,9 +403,13 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
             else:
                 t = n_steps * h
                 for v in np.flatnonzero(alive):
-                    prog.final(t, int(rows[v]), int(v))
+                    if prog.final(t, int(rows[v]), int(v)) == 2:   # an output not finite
+                        died_at[v], alive[v], last = t, False, int(v)
                 row = int(rows.max()) + 1
                 n = n_steps - 1
+                if not alive.any():
+                    status = "diverged"
+                    message, x = _compiled_output_failure(d, t, x, last)
         except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
             status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
@@ -412,6 +421,23 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
                    x, n, t, wall0)
+
+
+def _compiled_output_failure(d: CompiledDiagram, t: float, x, b: int) -> tuple:
+    """(message, blamed block) for variant ``b`` whose compiled run found an unrecorded
+    output not finite at its record of time ``t`` (state ``x``, before that step): the
+    outputs are evaluated again at (t, x) on the NumPy path to name block and port."""
+    _, outputs, sig = _make_evaluator(d)
+    with np.errstate(all="ignore"):
+        outputs(t, x)
+    values = [(i, np.asarray(v)[min(b, np.shape(v)[0] - 1)]) for i, v in enumerate(sig)
+              if v is not None and i not in d.constant_signals]
+    if all(np.isfinite(v).all() for _, v in values):      # not reproduced: say so
+        return (f"simulation diverged at t = {t:.6g}: a block output is not finite"
+                + (f" (variant {b})" if d.batch > 1 else "")
+                + "; results up to that time are kept"), ""
+    name, value = finite.blame(d, values)
+    return finite.message(d, t, name, value, b), name.rsplit(".", 1)[0]
 
 
 def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t,
@@ -436,7 +462,7 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
                     wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
                     diverged_at=died_at)
     if status == "diverged" and isinstance(x, str):          # a block output, not a state
-        raise DivergenceError(message, time=float(t_out[-1]), block=x, result=result)
+        raise DivergenceError(message, time=float(t_out[-1]), block=x or None, result=result)
     if status == "diverged":
         blk, _ = d.state_owner(int(np.argmax(~(np.abs(x) <= bound)) % max(N, 1)))
         raise DivergenceError(message, time=t + h, block=blk.name if blk else None,

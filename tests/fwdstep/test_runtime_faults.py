@@ -476,3 +476,23 @@ def test_an_unrecorded_output_is_checked_with_fixed_and_adaptive_solvers(tmp_pat
     assert str(info.value) == ("simulation diverged at t = 1.8: block 'big' (Gain) output "
                                "'y'[0] = inf is not finite; results up to that time are kept")
     assert info.value.result.t[-1] == pytest.approx(1.8)
+
+
+@pytest.mark.slow
+def test_an_unrecorded_output_is_checked_on_the_compiled_backend(tmp_path):
+    # numba compiles this structure (~30 s CPU): a single run and a batch, as above
+    pytest.importorskip("numba")
+    path = write(tmp_path, UNLOGGED)
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(fwdstep.load_diagram(path, {"g": 1.0e200}), backend="compiled")
+    assert str(info.value) == ("simulation diverged at t = 0.01: block 'big' (Gain) output "
+                               "'y'[0] = inf is not finite; results up to that time are kept")
+    assert info.value.block == "big" and info.value.result.t[-1] == pytest.approx(0.01)
+    # one batch of three variants, run in parallel by the compiled program
+    from fwdstep.spec import load_spec
+    d = fwdstep.compile_batch([load_spec(path, {"g": g}) for g in (1.0, 1.0e200, 3.0)])
+    r = fwdstep.simulate(d, backend="compiled")
+    assert r.status == "partially diverged"
+    assert list(np.isnan(r.diverged_at)) == [True, False, True] and r.diverged_at[1] == 0.01
+    np.testing.assert_allclose(r["tracked.y"][-1], [[1, 2], [np.nan, np.nan], [3, 6]],
+                               rtol=1e-12)                            # g (1, 2) t at t = 1
