@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
+import math
 import os
 import sys
 import types
@@ -363,11 +364,13 @@ class CompiledProgram:
         """Record the hashes of the machine code numba just cached (see compiled_cache)."""
         compiled_cache.seal(self.module)
 
-    def final(self, t: float, row: int, v: int = 0) -> None:
+    def final(self, t: float, row: int, v: int = 0) -> int:
         """Outputs at the final time (t = n_steps h) and their record, for variant v: the
-        first stage of run_one's loop, stopped after the record (no second copy of it)."""
+        first stage of run_one's loop, stopped after the record (no second copy of it).
+        Returns 2 if an unrecorded output is not finite there, else 0."""
         n = int(round(t / self.consts["h"]))
-        self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args, *self.logs)
+        return self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args,
+                                   *self.logs)[0]
 
 
 def build_program(d, n_rows: int) -> CompiledProgram:
@@ -386,6 +389,8 @@ def build_program(d, n_rows: int) -> CompiledProgram:
         idx = d.signal_index[name]
         logs.append(np.full((n_rows, B) + shapes[idx], np.nan))
         record.append(f"L{k}[row, v] = s{idx}[0]")
+    from .finite import unlogged_signals      # every other output: finite, or status 2
+    record += [f"if not _finite(s{idx}): return 2, n, row + 1" for idx in unlogged_signals(d)]
     log_names = [f"L{k}" for k in range(len(logs))]
     body1 = st.outputs("x1", "t")
     der1 = st.derivatives("x1", "t", "K2[0]")
@@ -433,7 +438,7 @@ def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> s
     out = ["# fwdstep compiled program (generated; see fwdstep/backend_numba.py)",
            f"# numba {numba.__version__}", *digests,
            "import math", "import numpy as np", "from numba import njit, prange",
-           "from fwdstep.backend_numba import kernel as _kernel, _pick, _flat, _vecmat",
+           "from fwdstep.backend_numba import kernel as _kernel, _pick, _flat, _vecmat, _finite",
            *gen.imports, "CACHE = True", "", ""]
 
     def fn(header, body, decorator="@njit(cache=CACHE)"):
@@ -481,6 +486,15 @@ def _flat(a):
     """A (1, *shape) signal as a contiguous (1, size) array."""
     c = np.ascontiguousarray(a)
     return c.reshape((c.shape[0], c.size // c.shape[0]))
+
+
+@njit(cache=False)
+def _finite(a):
+    """Whether every element of a signal is finite (run_one returns status 2 otherwise)."""
+    for w in a.flat:
+        if not math.isfinite(w):
+            return False
+    return True
 
 
 @njit(cache=False)
