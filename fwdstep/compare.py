@@ -144,7 +144,7 @@ def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None
         part, k = found[i]
         if not _has_signal(part, k):
             raise OutputError(f"{outdir}: the signal of variant {i} was not saved (the sweep "
-                              "ran with --no-signals, which keeps only the plotted variants')")
+                              "ran with --no-signals, which keeps only the plotted variants)")
         info = json.loads(str(part["signal_info"])) if "signal_info" in part else \
             {"name": "e", "real": "e"}                  # a sweep saved before names were kept
         t, e = part["t"], part["e"][:, k]
