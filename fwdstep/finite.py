@@ -93,15 +93,16 @@ def blame(d, candidates) -> tuple:
     return d.signal_names[i], value
 
 
-def message(d, t: float, name: str, value, b: int) -> str:
-    """The one line of a non-finite output, as a diverging state's."""
+def message(d, t: float, name: str, value, b: int, alone: bool = False) -> str:
+    """The one line of a non-finite output, as a diverging state's (``alone``: variant b's
+    own line, without naming its place in the batch)."""
     block, port = name.rsplit(".", 1)
     step = next((st for st in d.schedule if st.block.name == block), None)
     flat = np.asarray(value, dtype=float).reshape(-1)
     k = int(np.argmax(~np.isfinite(flat)))
     where = f"[{k}]" if flat.size > 1 else ""
     who = f"block '{block}' ({step.block.type_name})" if step is not None else f"'{block}'"
-    variant = f" (variant {b})" if d.batch > 1 else ""
+    variant = f" (variant {b})" if d.batch > 1 and not alone else ""
     return (f"simulation diverged at t = {t:.6g}: {who} output '{port}'{where} = "
             f"{flat[k]:.6g} is not finite{variant}; results up to that time are kept")
 
@@ -111,13 +112,14 @@ def rows_finite(logs, lo: int, hi: int) -> bool:
     return all(np.isfinite(L[lo:hi]).all() for L in logs)
 
 
-def first_non_finite_output(d, t_log, logs, row, alive, died_at):
+def first_non_finite_output(d, t_log, logs, row, alive, died_at, reasons=None):
     """The first recorded row where a recorded output is NaN or inf while the states were
     finite.  One vectorised scan of the log, O(log size).  For a single run returns (rows
     to keep, "diverged", message, blamed block name) or None; in a batch the variant is
     marked diverged at that time (``alive``/``died_at`` updated in place) and None is
     returned unless every variant is gone.  Blamed is the earliest recorded signal in
-    evaluation order that is not finite at that row."""
+    evaluation order that is not finite at that row.  ``reasons`` (a dict) receives each
+    marked variant's own message."""
     if row == 0 or not logs:
         return None
     B = d.batch
@@ -141,20 +143,22 @@ def first_non_finite_output(d, t_log, logs, row, alive, died_at):
         return None
     r, b, name, value = min(found, key=lambda f: (f[0], f[1]))
     text = message(d, t_log[r], name, value, b)
-    for r_b, b_b, _, _ in found:
+    for r_b, b_b, name_b, value_b in found:
         died_at[b_b] = t_log[r_b]
         alive[b_b] = False
+        if reasons is not None:
+            reasons[int(b_b)] = message(d, t_log[r_b], name_b, value_b, b_b, alone=True)
     if alive.any():
         return None
     return (r + 1 if B == 1 else row), "diverged", text, name.rsplit(".", 1)[0]
 
 
-def probe_failure(d, t_log, logs, r, check: OutputCheck, bad, alive, died_at):
+def probe_failure(d, t_log, logs, r, check: OutputCheck, bad, alive, died_at, reasons=None):
     """Variants ``bad`` have an unrecorded output that is not finite at recorded row ``r``:
     mark them diverged at that time (``alive``/``died_at`` updated in place).  Returns
     (rows to keep, "diverged", message, blamed block name) when the run must stop (a single
     run, or every variant gone), else None.  A single run's log is scanned first: a recorded
-    output may have failed at an earlier row."""
+    output may have failed at an earlier row.  ``reasons`` as in first_non_finite_output."""
     if d.batch == 1:
         earlier = first_non_finite_output(d, t_log, logs, r, alive, died_at)
         if earlier is not None:
@@ -164,6 +168,8 @@ def probe_failure(d, t_log, logs, r, check: OutputCheck, bad, alive, died_at):
         recorded = [(d.signal_index[n], L[r, b]) for n, L in zip(d.logged, logs)]
         name, value = blame(d, recorded + check.values(b))
         died_at[b], alive[b] = t_log[r], False
+        if reasons is not None:
+            reasons[int(b)] = message(d, t_log[r], name, value, b, alone=True)
         found.append((b, name, value))
     if alive.any():
         return None

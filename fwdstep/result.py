@@ -21,7 +21,7 @@ class Result:
     """
 
     def __init__(self, t, signals: dict, diagram=None, status: str = "ok", message: str = "",
-                 wall_time: float = 0.0, steps: int = 0, diverged_at=None):
+                 wall_time: float = 0.0, steps: int = 0, diverged_at=None, reasons=None):
         self.t = t
         self._signals = signals
         self.diagram = diagram
@@ -31,6 +31,7 @@ class Result:
         self.steps = steps
         self.batch = diagram.batch if diagram is not None else 1
         self.diverged_at = diverged_at
+        self.reasons = dict(reasons or {})    # batch: variant -> why it diverged (one line)
 
     @property
     def names(self) -> list:

@@ -232,6 +232,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
     prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled, probe=probe)
     check = finite.OutputCheck(d, *probe) if probe else None
+    reasons: dict = {}                        # variant of a batch -> why it diverged
     x = prog.xn
     x[...] = d.x0
     first, first_record, rest = prog.first, prog.first_record, prog.rest
@@ -284,6 +285,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                     if not (m <= bound).all():
                         bad = ~(m <= bound) & alive
                         died_at[bad] = t + h
+                        for b in np.flatnonzero(bad):
+                            reasons[int(b)] = _divergence_message(d, x, bound, t + h, b)
                         alive &= ~bad
                         if not alive.any():
                             status = "diverged"
@@ -294,7 +297,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                     bad = check.failed(alive)
                     if bad is not None:
                         stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check,
-                                                    bad, alive, died_at)
+                                                    bad, alive, died_at, reasons)
                         if stop is not None:
                             row, status, message, x = stop
                             break
@@ -321,7 +324,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                 bad = check.failed(alive) if check is not None else None
                 if bad is not None:
                     stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check, bad,
-                                                alive, died_at)
+                                                alive, died_at, reasons)
                     if stop is not None:
                         row, status, message, x = stop
         except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.signals)
@@ -335,7 +338,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             error.__cause__ = exc
             status, message = "error", str(error)
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
-                   n, t, wall0)
+                   n, t, wall0, reasons)
 
 
 def _reason(exc) -> str:
@@ -367,6 +370,7 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     died_at = np.full(B, np.nan)
     rows, codes, n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))
     status, message, error = "ok", "", None
+    reasons: dict = {}                        # variant of a batch -> why it diverged
     n, t, row = 0, 0.0, 0
     next_report = wall0 + 1.0
     with np.errstate(all="ignore"):
@@ -382,6 +386,10 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                 if newly.any():
                     died_at[newly] = n_next[newly] * h     # t + h of the failing step,
                     alive &= ~newly                        # status 2: t of the record
+                    for b in np.flatnonzero(newly) if B > 1 else ():
+                        reasons[int(b)] = (
+                            _compiled_output_failure(d, died_at[b], x, b, alone=True)[0]
+                            if codes[b] == 2 else _divergence_message(d, x, bound, died_at[b], b))
                     if not alive.any():
                         last = int(np.argmax(n_next))
                         n = int(n_next.max()) - 1
@@ -405,6 +413,8 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                 for v in np.flatnonzero(alive):
                     if prog.final(t, int(rows[v]), int(v)) == 2:   # an output not finite
                         died_at[v], alive[v], last = t, False, int(v)
+                        if B > 1:
+                            reasons[last] = _compiled_output_failure(d, t, x, last, True)[0]
                 row = int(rows.max()) + 1
                 n = n_steps - 1
                 if not alive.any():
@@ -420,10 +430,11 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
             status, message = "error", str(error)
     prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
-                   x, n, t, wall0)
+                   x, n, t, wall0, reasons)
 
 
-def _compiled_output_failure(d: CompiledDiagram, t: float, x, b: int) -> tuple:
+def _compiled_output_failure(d: CompiledDiagram, t: float, x, b: int,
+                             alone: bool = False) -> tuple:
     """(message, blamed block) for variant ``b`` whose compiled run found an unrecorded
     output not finite at its record of time ``t`` (state ``x``, before that step): the
     outputs are evaluated again at (t, x) on the NumPy path to name block and port."""
@@ -434,19 +445,21 @@ def _compiled_output_failure(d: CompiledDiagram, t: float, x, b: int) -> tuple:
               if v is not None and i not in d.constant_signals]
     if all(np.isfinite(v).all() for _, v in values):      # not reproduced: say so
         return (f"simulation diverged at t = {t:.6g}: a block output is not finite"
-                + (f" (variant {b})" if d.batch > 1 else "")
+                + (f" (variant {b})" if d.batch > 1 and not alone else "")
                 + "; results up to that time are kept"), ""
     name, value = finite.blame(d, values)
-    return finite.message(d, t, name, value, b), name.rsplit(".", 1)[0]
+    return finite.message(d, t, name, value, b, alone), name.rsplit(".", 1)[0]
 
 
 def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t,
-            wall0) -> Result:
-    """The Result of a run (partial after an error), or the error carrying it."""
+            wall0, reasons=None) -> Result:
+    """The Result of a run (partial after an error), or the error carrying it.
+    ``reasons``: each diverged variant of a batch -> its own message (``Result.reasons``)."""
+    reasons = {} if reasons is None else reasons
     B, N = d.batch, d.n_states
     h, bound = d.spec.simulation.step, d.spec.simulation.bound
     if status == "ok":                  # a diverged state stays the reported cause
-        bad = finite.first_non_finite_output(d, t_log, logs, row, alive, died_at)
+        bad = finite.first_non_finite_output(d, t_log, logs, row, alive, died_at, reasons)
         if bad is not None:
             row, status, message, x = bad
     if B > 1 and (~alive).any() and status == "ok":
@@ -460,7 +473,7 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
                 L[t_out >= died_at[b], b] = np.nan
     result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
                     wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
-                    diverged_at=died_at)
+                    diverged_at=died_at, reasons=reasons)
     if status == "diverged" and isinstance(x, str):          # a block output, not a state
         raise DivergenceError(message, time=float(t_out[-1]), block=x or None, result=result)
     if status == "diverged":
@@ -473,15 +486,19 @@ def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t
     return result
 
 
-def _divergence_message(d: CompiledDiagram, x, bound, t) -> str:
+def _divergence_message(d: CompiledDiagram, x, bound, t, variant=None) -> str:
+    """The first state beyond the bound or not finite (of ``variant`` alone when given:
+    its own line, without naming its place in the batch)."""
     bad = np.argwhere(~(np.abs(x) <= bound))
-    b, i = (int(bad[0][0]), int(bad[0][1])) if len(bad) else (0, 0)
+    if variant is not None:
+        bad = bad[bad[:, 0] == variant]
+    b, i = (int(bad[0][0]), int(bad[0][1])) if len(bad) else (variant or 0, 0)
     blk, local = d.state_owner(i)
     val = x[b, i]
     labels = getattr(blk, "state_labels", None) if blk is not None else None
     label = labels[local] if labels and local < len(labels) else f"state[{local}]"
     what = "is not finite" if not np.isfinite(val) else f"exceeds the bound {bound:g}"
     who = f"block '{blk.name}' ({blk.type_name})" if blk is not None else "the diagram"
-    variant = f" (variant {b})" if d.batch > 1 else ""
-    return (f"simulation diverged at t = {t:.6g}: {who} {label} = {val:.6g} {what}{variant}; "
+    place = f" (variant {b})" if d.batch > 1 and variant is None else ""
+    return (f"simulation diverged at t = {t:.6g}: {who} {label} = {val:.6g} {what}{place}; "
             "results up to that time are kept")

@@ -387,8 +387,9 @@ def _run_members(job: BatchJob, members: list) -> list:
         o = {"status": "ok", "message": "", "diverged_at": None, "metrics": {}}
         died = r.diverged_at[b] if r.diverged_at is not None else np.nan
         if np.isfinite(died):
+            reason = r.reasons.get(b) or (r.message if d.batch == 1 else "")   # block, port
             o.update(status="diverged", diverged_at=float(died),
-                     message=f"diverged at t = {died:.6g}")
+                     message=reason or f"diverged at t = {died:.6g}")
         if metric is not None:
             e, t = r.variant(b)[d.resolve(metric)], r.t
             if o["status"] == "diverged":

@@ -461,6 +461,24 @@ def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_pa
         assert v.metrics == {m: alone[m] for m in v.metrics} and len(v.metrics) == 4
         # |tracked.y(1)| = |g (1, 2)| = sqrt(5) g
         assert alone["final_abs_error"] == pytest.approx(5 ** 0.5 * v.values["g"], rel=1e-12)
+    with pytest.raises(DivergenceError) as info:                     # its row says why
+        fwdstep.simulate(fwdstep.load_diagram(path, {"g": 1.0e200}))
+    assert res.variants[1].message == str(info.value)
+    assert "block 'big' (Gain) output 'y'[0] = inf" in str(info.value)
+
+
+def test_a_sweep_row_names_the_state_that_diverged_as_its_run_alone(tmp_path):
+    from fwdstep.sweep import run_sweep
+    path = write(tmp_path, GROWTH.format(rate="rate", bound="1e6").replace("rate: rate",
+                                                                            "rate: 1"))
+    res = run_sweep(path, grid={"rate": [0.01, 100.0]}, workers=1)
+    assert [size for size, _ in res.batches] == [2]
+    assert [v.status for v in res.variants] == ["ok", "diverged"]
+    with pytest.raises(DivergenceError) as info:
+        fwdstep.simulate(fwdstep.load_diagram(path, {"rate": 100.0}))
+    assert res.variants[1].message == str(info.value) == (
+        "simulation diverged at t = 0.14: block 'int' (Integrator) state[0] = 1.14243e+06 "
+        "exceeds the bound 1e+06; results up to that time are kept")   # e^(100 t) > 1e6
 
 
 @pytest.mark.parametrize("solver", ["rk4", "dop853"])
@@ -494,5 +512,6 @@ def test_an_unrecorded_output_is_checked_on_the_compiled_backend(tmp_path):
     r = fwdstep.simulate(d, backend="compiled")
     assert r.status == "partially diverged"
     assert list(np.isnan(r.diverged_at)) == [True, False, True] and r.diverged_at[1] == 0.01
+    assert r.reasons == {1: str(info.value)}                          # its own line
     np.testing.assert_allclose(r["tracked.y"][-1], [[1, 2], [np.nan, np.nan], [3, 6]],
                                rtol=1e-12)                            # g (1, 2) t at t = 1
