@@ -234,11 +234,14 @@ def test_sigterm_and_sighup_keep_partial_results(tmp_path, signum, code, reason)
         np.testing.assert_allclose(data["int.y"][:, 0], 1 - np.cos(t), atol=1e-9)
 
 
-def test_early_ctrl_c_is_one_line_never_a_traceback(tmp_path):
-    # Ctrl-C pressed again and again from the start: those before main() are ignored here
-    # (Python's own start-up is not fwdstep's), the first one inside main() (while numpy and
-    # fwdstep still import) must end the run with one line and 130, never a traceback
-    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+@pytest.mark.parametrize("signum, exit_code, reason", [
+    (signal.SIGINT, 130, "interrupted by the user"),
+    (signal.SIGTERM, 143, r"terminated \(SIGTERM\)")])
+def test_early_ctrl_c_is_one_line_never_a_traceback(tmp_path, signum, exit_code, reason):
+    # Ctrl-C (or SIGTERM) again and again from the start: those before main() are ignored
+    # here (Python's own start-up is not fwdstep's), the first one inside main() (while numpy
+    # and fwdstep still import) must end the run with one line and 128 + signal, no traceback
+    code = (f"import signal, sys; signal.signal({int(signum)}, signal.SIG_IGN); "
             "print('ready', flush=True); import cli; "
             "sys.exit(cli.main(['run', %r, '-o', %r, '-q', '--no-plots']))"
             % (write(tmp_path, LONG), str(tmp_path / "out")))
@@ -249,14 +252,14 @@ def test_early_ctrl_c_is_one_line_never_a_traceback(tmp_path):
         for _ in range(600):
             if proc.poll() is not None:
                 break
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signum)
             time.sleep(0.02)
         out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
     assert "Traceback" not in err, err
-    assert proc.returncode == 130, (proc.returncode, err)
-    assert re.fullmatch(r"fwdstep: interrupted by the user( at t = [0-9.]+)?\n", err), err
+    assert proc.returncode == exit_code, (proc.returncode, err)
+    assert re.fullmatch(rf"fwdstep: {reason}( at t = [0-9.]+)?\n", err), err
 
 
 def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
