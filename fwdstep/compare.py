@@ -31,6 +31,8 @@ from .plotting import (check_formats, line_colors, new_figure, place_legend, sav
 from .result import Result, load_result
 
 CSV_FILE = "compare.csv"
+#: how many variants of a sweep the report's comparison figure overlays
+MAX_SWEEP_SHOWN = 8
 FIGURE_NAME = "compare"
 _STYLES = ("-", "--", ":", "-.")
 
@@ -160,6 +162,7 @@ def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None
                    if status == "ok" else {})
         r.stored = {"metrics": metrics, "metric_signal": info["name"]}
         r.figure_panels, r.title, r.outdir = {}, "", outdir
+        r.diagram_file = str(part["diagram"]) if "diagram" in part else None
         values = json.loads(str(part["values"][k]))
         shown = ", ".join(f"{key}={_value_text(v)}" for key, v in values.items())
         runs.append(Run(f"{name}@{i}" + (f" ({shown})" if shown else ""), r))
@@ -300,8 +303,9 @@ def comparison_figure(runs: list, signals: list, diffs: dict):
             time_axis(ax, t_ref)
             place_legend(ax)
     axes[-1].set_xlabel("$t$ [s]", fontsize=9)
-    finish_figure(fig, "Comparison of " + ", ".join(r.label for r in runs),
-                  f"differences against {runs[0].label}")
+    names = ", ".join(r.label for r in runs)
+    finish_figure(fig, f"Comparison of {names}" if len(names) <= 90 else
+                  f"Comparison of {len(runs)} runs", f"differences against {runs[0].label}")
     return fig
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 import html
 import os
 
+import numpy as np
+
 
 def result_summary_html(result) -> str:
     """A short summary of a Result for notebooks: status, time reached, metrics, signals."""
@@ -161,16 +163,60 @@ def report_html(run_dir: str) -> str:
             counts[row.get("status", "?")] = counts.get(row.get("status", "?"), 0) + 1
         parts.append("<h2>Sweep</h2><p>" + html.escape(", ".join(
             f"{v} {k}" for k, v in counts.items())) + "</p>")
-        parts.append(_table(rows))
+        parts.append(_table([_numbers(row) for row in rows]))
         for name in sorted(os.listdir(run_dir)):
             if name.endswith(".png") and name.startswith("sweep"):
                 with open(os.path.join(run_dir, name), "rb") as fh:
                     parts.append(f"<figure>{_img(fh.read(), 'image/png', name)}"
                                  f"<figcaption>{html.escape(name)}</figcaption></figure>")
+        parts += _sweep_extras(run_dir, os.path.isfile(summ))
     return ("<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>fwdstep report: {html.escape(title)}</title><style>{_CSS}</style></head>"
             f"<body>{''.join(parts)}<p style=\"color:#888;font-size:.8em\">{_MARK}</p>"
             "</body></html>\n")
+
+
+def _numbers(row: dict) -> dict:
+    """A sweep.csv row with its numeric cells as numbers (shown to 6 digits, right-aligned)."""
+    out = {}
+    for k, v in row.items():
+        try:
+            out[k] = int(v) if k in ("variant", "batch") else float(v) if v not in ("", None) \
+                and k not in ("status", "message") else v
+        except (TypeError, ValueError):
+            out[k] = v
+    return out
+
+
+def _sweep_extras(run_dir: str, has_run: bool) -> list:
+    """The diagram of a sweep and the comparison of up to 8 of its saved variants."""
+    from .compare import MAX_SWEEP_SHOWN, compare, sweep_runs
+    from .errors import FwdstepError
+    from .plotting import figure_bytes
+    out = []
+    try:
+        runs = sweep_runs(run_dir)
+    except FwdstepError as exc:
+        return [f"<p>{html.escape(f'no comparison of variants: {exc}')}</p>"]
+    diagram = getattr(runs[0].result, "diagram_file", None)
+    if diagram and not has_run:
+        svg, note = diagram_picture({"diagram": diagram})
+        out.append("<h2>Diagram</h2>")
+        if svg is not None:
+            out.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}'
+                       "</div>")
+        if note:
+            out.append(f"<p>{html.escape(note)}</p>")
+    picked = runs if len(runs) <= MAX_SWEEP_SHOWN else [
+        runs[int(k)] for k in np.unique(np.linspace(0, len(runs) - 1, MAX_SWEEP_SHOWN)
+                                        .astype(int))]
+    if len(picked) >= 2:
+        c = compare([r.result for r in picked], labels=[r.label for r in picked])
+        out.append(f"<h2>Variants compared</h2><figure>"
+                   f"{_img(figure_bytes(c.figure, 'png'), 'image/png', 'variants compared')}"
+                   f"<figcaption>{len(picked)} of {len(runs)} saved variants, differences "
+                   f"against {html.escape(picked[0].label)}</figcaption></figure>")
+    return out
 
 
 def _figures(result, run_dir: str) -> list:

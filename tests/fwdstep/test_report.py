@@ -95,7 +95,13 @@ def test_report_of_a_sweep_has_its_table_and_figure(tmp_path, capsys):
     page = _parse(out / "report.html")
     text = " ".join(page.text)
     assert "3 ok" in text
-    assert len(page.images) >= 1 and page.images[-1]["alt"] == "sweep.png"
+    # the sweep figure, the diagram (its path is kept in the parts) and the saved variants
+    # overlaid (fwdstep.compare of SWEEP@k)
+    assert [img["alt"] for img in page.images] == ["sweep.png", "block diagram",
+                                                   "variants compared"]
+    html_text = (out / "report.html").read_text()
+    assert "3 of 3 saved variants, differences against sweep@0 (g=-1)" in html_text
+    assert '<td class="num">-1</td>' in html_text           # the swept value, a number
 
 
 def test_report_refusals(tmp_path, capsys):
@@ -131,3 +137,4 @@ def test_chromium_renders_the_report_images(tmp_path):
     # the diagram's (SVG) box headers are the pale orange of output ports
     orange = np.all(np.abs(img - [253, 242, 233]) <= 3, axis=2).sum()
     assert blue > 200 and orange > 50, (blue, orange)
+
