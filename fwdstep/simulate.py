@@ -11,6 +11,7 @@ Procedure Step (one step of size h from (t_n, x_n), an s-stage explicit RK table
         if i == 1 and n % log_every == 0: record logged signals at t_n   (no extra evaluation)
     x_{n+1} = x_n + h * sum_i b_i k_i
     if any |x_{n+1}| > bound or not finite: stop (diverged), keep what was recorded
+    if recorded and any block output at t_n not finite: stop (diverged)   (fwdstep.finite)
 
 The final time is recorded with one extra output pass.
 
