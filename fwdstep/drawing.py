@@ -541,7 +541,9 @@ def draw_layered(picture: Picture):
         start = (cx[src] + size[src][0] / 2, port_y(src, sp, "out"))
         end = (cx[dst] - size[dst][0] / 2, port_y(dst, dp, "in"))
         if is_back or src == dst:                   # out to the right, under, back in
-            xr, xl = start[0] + 0.15, end[0] - 0.15
+            off = 0.04 * (k % 5)                    # verticals in the gaps between layers
+            xr = x_of[lay.layer[src]] + width[lay.layer[src]] + 0.12 + off
+            xl = x_of[lay.layer[dst]] - 0.12 - off
             pts = [start, (xr, start[1]), (xr, lane), (xl, lane), (xl, end[1]), end]
             verts = pts[:-1]
             ax.add_patch(PathPatch(Path(verts, [Path.MOVETO] + [Path.LINETO] * 4), fc="none",
