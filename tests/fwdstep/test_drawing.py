@@ -231,11 +231,16 @@ def test_small_diagrams_keep_their_wires_and_large_ones_get_tags():
     assert tags(large, "auto") == tags(large, "on") != [] and tags(large, "off") == []
 
 
-def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path, capsys):
+def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path, capsys,
+                                                                         monkeypatch):
     """Theorem 9 without graphviz: subsystems drawn as boxes by default (said on stdout), no
     two boxes overlap, every forward wire runs left to right through the gaps between
     layers, and the text is drawn at a readable size."""
+    import fwdstep.drawing
     from fwdstep.drawing import _box_size, _layout, draw_layered, picture_for
+    drawn = []                                # the layout is checked below; skip rasterising
+    monkeypatch.setattr(fwdstep.drawing, "layered_bytes",
+                        lambda pic, fmt: drawn.append(pic) or b"\x89PNG\r\n\x1a\n")
     out = tmp_path / "t9.png"
     assert main(["graph", "diagrams/theorem9.yaml", "--engine", "matplotlib",
                  "-o", str(out)]) == 0
@@ -243,6 +248,7 @@ def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path
                                        "subsystems as boxes: --depth 1 opens them)\n")
     d = fwdstep.load_diagram("diagrams/theorem9.yaml")
     pic = picture_for(d, depth=0)
+    assert set(drawn[0].boxes) == set(pic.boxes)
     assert {"plant", "qds", "torque"} <= set(pic.boxes) and pic.frames == {}
     fig = draw_layered(pic)
     boxes = [p for p in fig.axes[0].patches if type(p).__name__ == "FancyBboxPatch"]
