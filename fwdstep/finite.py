@@ -18,8 +18,13 @@ every ``log_every``-th step and the final time):
   ``OutputCheck.failed`` looks at it with one reduction (a sum is finite exactly when every
   term is, unless it overflows, which the exact check then clears).
 
-In a batch the variant whose output is not finite is marked diverged at that sample and the
-others go on, each equal to its run alone.
+The solve_ivp path (``fwdstep.ivp``) uses the same probe at its records; the compiled backend
+(``fwdstep.backend_numba``) checks the unrecorded outputs inside ``run_one`` and returns status
+2, and ``fwdstep.simulate`` names block and port by evaluating the outputs again.
+
+In a batch the variant whose output is not finite is marked diverged at that sample, with its
+own line in ``Result.reasons`` (what its run alone would print; a sweep's row shows it), and
+the others go on, each equal to its run alone.
 """
 from __future__ import annotations
 
