@@ -5,7 +5,8 @@
     fwdstep sweep DIAGRAM --grid ell=1,2,3 --grid K=20,50
                   [--random NAME=DIST ... --samples N --seed S --design random|lhs|sobol]
                   [--seed-parameter NAME] [--set NAME=VALUE ...]
-                  [--workers N | --scheduler ADDRESS] [--max-memory SIZE] [--batch-size N]
+                  [--workers N | --scheduler ADDRESS] [--backend numpy|compiled]
+                  [--max-memory SIZE] [--batch-size N]
                   [--sequential] [--resume] [--no-signals] [--netcdf] [-o OUTDIR] [--force]
                   [-q]
 
@@ -23,8 +24,9 @@ equal: the whole simulation settings object (``spec.simulation``, every field, i
 ones added later), the rest of the diagram spec (log, metrics, connections) and the blocks'
 structure signature (``fwdstep.compiler.structure_signature``: shapes, state sizes,
 non-numeric parameters, and everything a block computed in ``setup`` outside ``p``).
-Fixed-step solvers on the NumPy backend batch; any other solver or backend runs one variant
-per batch.  A variant that diverges is frozen and marked while the rest of its batch goes on;
+Fixed-step solvers batch, on the NumPy backend or the compiled one (``--backend compiled``:
+``fwdstep.backend_numba`` runs a batch's variants in parallel threads; one process by
+default); an adaptive solver runs one variant per batch.  A variant that diverges is frozen and marked while the rest of its batch goes on;
 if a block raises inside a batch, that batch is re-run variant by variant.
 
 **Memory.**  A batch's size is bounded by what it really logs: the bytes of the logged error
@@ -249,12 +251,13 @@ def _plain(value):
 
 
 def batchable(spec) -> bool:
-    """Whether variants of this spec may share a batch: fixed-step Runge-Kutta solvers on the
-    NumPy backend (a compiled backend runs single variants; an adaptive solver would choose
-    one step for the whole batch, which is not each variant's own run)."""
+    """Whether variants of this spec may share a batch: fixed-step Runge-Kutta solvers, on the
+    NumPy backend (arrays with a batch axis) or the compiled one (``run_batch``: each variant
+    on its own row, in parallel).  An adaptive solver would choose one step sequence for the
+    whole batch, which is not each variant's own run."""
     from .solvers import TABLEAUX
     cfg = spec.simulation
-    return cfg.solver in TABLEAUX and getattr(cfg, "backend", "numpy") == "numpy"
+    return cfg.solver in TABLEAUX and getattr(cfg, "backend", "numpy") in ("numpy", "compiled")
 
 
 def variant_bytes(spec, blocks, metric: str | None) -> tuple:
@@ -411,7 +414,8 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
               client=None, scheduler: str | None = None,
               max_memory=DEFAULT_MAX_MEMORY, batch_size: int | None = None,
               outdir: str | None = None, resume: bool = False,
-              keep_signals: bool = True, variants: list | None = None) -> SweepResult:
+              keep_signals: bool = True, variants: list | None = None,
+              backend: str | None = None) -> SweepResult:
     """Run every variant of the diagram at ``path``; see the module docstring.
 
     ``grid`` maps parameter names to lists of values; ``random`` maps names to
@@ -421,7 +425,9 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     finished batch is written to ``outdir/parts`` at once and ``resume=True`` skips the
     variants found there.  ``variants`` (instead of grid/random) lists the variants
     explicitly, one dict of parameter values each (a missing name keeps the diagram's
-    value).  ``progress(text)`` is told about each finished batch.
+    value).  ``progress(text)`` is told about each finished batch.  ``backend`` ('numpy' or
+    'compiled') sets ``simulation.backend`` for every variant; compiled sweeps run in one
+    process unless ``workers`` is given (numba runs a batch's variants on every core).
     Raises ``DiagramError`` for a bad diagram or bad sweep options (nothing is run then)."""
     grid, random, overrides = dict(grid or {}), dict(random or {}), dict(overrides or {})
     wall0 = time.perf_counter()
@@ -433,6 +439,10 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     else:
         all_values = variant_values(grid, random, samples, seed, design)
         names = list(grid) + list(random)
+    if backend is not None:
+        if "simulation.backend" in names:
+            raise ConfigError("simulation.backend is both swept and set with --backend")
+        overrides["simulation.backend"] = backend
     if seed_parameter is not None:
         if seed_parameter in names:
             raise ConfigError(f"--seed-parameter {seed_parameter} is also swept")
@@ -459,6 +469,11 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
                             line=exc.line, block=exc.block, port=exc.port) from None
         specs.append(spec)
     table = [Variant(i, values) for i, values in enumerate(all_values)]
+    compiled = any(s.simulation.backend == "compiled" for s in specs)
+    if compiled:
+        _need_numba(path)
+        if workers is None and client is None and scheduler is None:
+            workers = 1                 # numba's threads already use every core
     own_client = client is None and scheduler is not None
     if own_client:
         client = dask_client(scheduler)
@@ -521,6 +536,14 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
                 v.status = "interrupted"
     result.wall_time = time.perf_counter() - wall0
     return result
+
+
+def _need_numba(path: str) -> None:
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or "
+                          "use --backend numpy)", file=path) from None
 
 
 def _client_workers(client) -> int:
@@ -759,7 +782,8 @@ def _cmd_sweep(args) -> int:
                 scheduler=getattr(args, "scheduler", None),
                 max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
                 batch_size=getattr(args, "batch_size", None), outdir=outdir, resume=resume,
-                keep_signals=not getattr(args, "no_signals", False))
+                keep_signals=not getattr(args, "no_signals", False),
+                backend=getattr(args, "backend", None))
     except (DiagramError, OutputError) as exc:
         print(f"fwdstep: {exc}", file=sys.stderr)
         return EXIT_INPUT

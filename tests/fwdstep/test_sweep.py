@@ -312,11 +312,42 @@ def test_the_reported_examples(capsys, tmp_path):
 
 
 def test_unbatchable_settings_run_one_variant_per_batch(path):
-    """The compiled backend runs single variants; such variants are never batched."""
+    """An adaptive solver picks one step sequence per run: such variants are never batched.
+    The compiled backend batches (run_batch), but never with NumPy-backend variants."""
     from fwdstep.compiler import instantiate_variants
     from fwdstep.spec import load_spec
     from fwdstep.sweep import plan_batches
     specs = [load_spec(path, {"K": k, "simulation.backend": b})
              for k in (10, 20, 30) for b in ("numpy", "compiled")]
+    specs += [load_spec(path, {"K": k, "simulation.solver": "dop853"}) for k in (10, 20)]
     batches = plan_batches(specs, instantiate_variants(specs), "e.y")
-    assert sorted(batches) == [[0, 2, 4], [1], [3], [5]]
+    assert sorted(batches) == [[0, 2, 4], [1, 3, 5], [6], [7]]
+
+
+@pytest.mark.slow
+def test_compiled_sweep_equals_one_by_one_compiled_runs():
+    """``--backend compiled``: a batch runs through the compiled backend's batched loop
+    (``CompiledProgram.run_batch``); each variant equals its own compiled run (1e-12),
+    including variants with another step (a separate batch).  Compiles numba code."""
+    pytest.importorskip("numba")
+    from fwdstep.compiler import compile_spec
+    from fwdstep.spec import load_spec
+    from fwdstep.simulate import simulate
+    path = "diagrams/slotine_li.yaml"
+    result = run_sweep(path, grid={"Lambda": [2.0, 5.0, 9.0],
+                                   "simulation.step": [0.001, 0.002]},
+                       overrides={"t_final": 0.5}, backend="compiled")
+    assert len(result.batches) == 2 and result.counts() == {"ok": 6}
+    signals = {}
+    for part in result.parts:
+        for k, i in enumerate(part["indices"]):
+            signals[int(i)] = (part["t"], part["e"][:, k])
+    for v in result.variants:
+        alone = simulate(compile_spec(load_spec(path, {"t_final": 0.5, **v.values,
+                                                       "simulation.backend": "compiled"})))
+        t, e = signals[v.index]
+        np.testing.assert_array_equal(t, alone.t)
+        np.testing.assert_allclose(e, alone["e.y"], rtol=0, atol=1e-12, err_msg=str(v.values))
+        own = alone.metrics()
+        for m in METRICS:
+            assert v.metrics[m] == pytest.approx(own[m], rel=1e-12, abs=1e-15), (v.values, m)
