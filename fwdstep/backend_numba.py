@@ -66,19 +66,70 @@ def jit_kernel(fn):
     for name in _global_names(fn.__code__):
         value = g.get(name)
         if value is kernelops:
-            g[name] = compiled_ops
+            g[name] = _OpsNamespace()
+            files.add(os.path.abspath(compiled_ops.__file__))
         elif isinstance(value, types.FunctionType):
             if getattr(value, "__module__", "") == kernelops.__name__:
-                g[name] = getattr(compiled_ops, value.__name__)
-            else:
-                sub, sub_files = jit_kernel(value)
-                g[name] = sub
-                files |= sub_files
+                value = getattr(compiled_ops, value.__name__).py_func
+            sub, sub_files = jit_kernel(value)
+            g[name] = sub
+            files |= sub_files
     clone = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
     clone.__module__ = fn.__module__
     clone.__qualname__ = fn.__qualname__
-    _jitted[key] = (njit(cache=False)(clone), files)
+    dispatcher = njit(cache=False)(clone)
+    _cache_on_disk(dispatcher, files)
+    _jitted[key] = (dispatcher, files)
     return _jitted[key]
+
+
+_ops_namespace: list = []
+
+
+def _OpsNamespace():
+    """``fwdstep.kernelops`` as kernels see it in compiled code: a module whose functions
+    are the cached jitted twins of ``fwdstep.compiled_ops``."""
+    if not _ops_namespace:
+        ops = types.ModuleType("fwdstep._compiled_kernelops")
+        for name in dir(compiled_ops):
+            value = getattr(compiled_ops, name)
+            if hasattr(value, "py_func"):
+                setattr(ops, name, jit_kernel(value.py_func)[0])
+        _ops_namespace.append(ops)
+    return _ops_namespace[0]
+
+
+_kernel_folders: set = set()
+
+
+def _cache_on_disk(dispatcher, files: set) -> None:
+    """Let numba cache ``dispatcher``'s machine code in a private folder of the compiled-code
+    cache keyed by the contents of ``files`` (and the numba and Python versions), so a new
+    structure compiles only its generated loop and an edited kernel never reuses stale code
+    (numba's own key ignores the functions a kernel calls)."""
+    import numba
+    from numba.core import config
+    key = hashlib.sha256("\n".join(
+        [numba.__version__, sys.version] + [f"{os.path.basename(f)} {_file_digest(f)}"
+                                            for f in sorted(files)]).encode()).hexdigest()[:24]
+    folder = compiled_cache.kernel_folder(key)
+    if folder is None:
+        return
+    old = config.CACHE_DIR
+    config.CACHE_DIR = folder
+    try:
+        dispatcher.enable_caching()
+    except Exception as exc:  # noqa: BLE001 - a cache fault never stops a run
+        compiled_cache.warn(f"kernel cache unusable ({type(exc).__name__}: {exc}"[:200] + ")")
+    finally:
+        config.CACHE_DIR = old
+    _kernel_folders.add(folder)
+
+
+def seal_kernels() -> None:
+    """Record the hashes of the kernel cache files written so far (see compiled_cache)."""
+    for folder in sorted(_kernel_folders):
+        compiled_cache.seal_folder(folder)
 
 
 def _global_names(code) -> set:
@@ -156,12 +207,17 @@ class _Gen:
         return self.kernels[id(fn)]
 
 
-def _unflat(expr: str, shape: tuple, gen: _Gen) -> str:
-    """A (1, size) expression as a (1, *shape) signal (contiguous)."""
+def _unflat(buf: str, a: int, b: int, shape: tuple, gen: _Gen) -> str:
+    """Columns a:b of row 0 of the (1, n) array ``buf`` as a (1, *shape) signal: a view when
+    ``buf`` is C-contiguous (no copy, no allocation)."""
     if shape == ():
-        return f"np.ascontiguousarray({expr})[:, 0]"
+        return f"_view0({buf}, {gen.i(a)})"
+    if len(shape) == 1:
+        return f"_view1({buf}, {gen.i(a)}, {gen.i(b - a)})"
+    if len(shape) == 2:
+        return f"_view2({buf}, {gen.i(a)}, {gen.i(shape[0])}, {gen.i(shape[1])})"
     dims = ", ".join(gen.i(s) for s in shape)
-    return f"np.ascontiguousarray({expr}).reshape((1, {dims}))"
+    return f"_viewn({buf}, {gen.i(a)}, {gen.i(b - a)}, ({dims},))"
 
 
 class _Stage:
@@ -189,6 +245,7 @@ class _Stage:
                         self.params[n] = True
         self.groups = {}
         self.group_plan = {}
+        self.prologue = {}          # group number -> lines allocating its buffers
         for kind, op, owner in ops:
             if kind == "group":
                 self.group_plan[id(op)] = owner
@@ -244,8 +301,7 @@ class _Stage:
                 for idx in op.outputs:
                     shape = tuple(self.shapes[idx])
                     size = int(np.prod(shape, dtype=np.int64)) if shape else 1
-                    lines.append(f"s{idx} = " + _unflat(f"r[:, {gen.i(c)}:{gen.i(c + size)}]",
-                                                        shape, gen))
+                    lines.append(f"s{idx} = " + _unflat("r", c, c + size, shape, gen))
                     c += size
             else:
                 lines.append(f"r = {call}")
@@ -255,24 +311,31 @@ class _Stage:
         return lines
 
     def _group(self, op, buf, done) -> list:
+        """The fused product [inputs] @ M into the group's buffers V, Y (allocated once per
+        call of run_one, before the loop); its output signals are views of Y."""
         gen = self.gen
-        n_in = sum(n for _, n in op.inputs)
-        lines = [f"V = np.zeros((1, {gen.i(n_in)}))"]
+        no = self.group_no[id(op)]
+        v, y, M = f"V{no}", f"Y{no}", self.groups[id(op)]
+        if no not in self.prologue:
+            n_in = sum(n for _, n in op.inputs)
+            self.prologue[no] = [f"{v} = _zeros({gen.i(n_in)})",
+                                 f"{y} = _zeros({M}.shape[2])"]
+        lines = []
         c = 0
         for term, n in op.inputs:
             if term == "x":
                 sl = self.group_plan[id(op)].state
-                src = f"{buf}[:, {gen.i(sl.start)}:{gen.i(sl.stop)}]"
+                lines.append(f"_copy({v}, {gen.i(c)}, {buf}, {gen.i(sl.start)}, {gen.i(n)})")
             else:
-                src = f"_flat({self._read(term, done)})"
-            lines.append(f"V[:, {gen.i(c)}:{gen.i(c + n)}] = {src}")
+                rank = len(self.shapes[term])
+                put = "_put0" if rank == 0 else "_put1" if rank == 1 else "_put2" \
+                    if rank == 2 else "_putn"
+                lines.append(f"{put}({v}, {gen.i(c)}, {self._read(term, done)})")
             c += n
-        y = f"Y{self.group_no[id(op)]}"
-        lines.append(f"{y} = _vecmat(V, {self.groups[id(op)]})")
+        lines.append(f"_vecmat_into({v}, {M}, {y})")
         c = 0
         for idx, n in op.outputs:
-            lines.append(f"s{idx} = " + _unflat(f"{y}[:, {gen.i(c)}:{gen.i(c + n)}]",
-                                                tuple(self.shapes[idx]), gen))
+            lines.append(f"s{idx} = " + _unflat(y, c, c + n, tuple(self.shapes[idx]), gen))
             c += n
         self.group_y[id(op)] = (y, c)
         return lines
@@ -286,14 +349,15 @@ class _Stage:
                 if not op.derivative:
                     continue
                 plan = owner
-                dst = f"{kbuf}[{gen.i(plan.state.start)}:{gen.i(plan.state.stop)}]"
+                sl = plan.state
+                dst = f"{kbuf}, {gen.i(sl.start)}, {gen.i(sl.stop - sl.start)}"
                 if op.outputs:
                     y, c = self.group_y[id(op)]
-                    lines.append(f"{dst} = {y}[0, {gen.i(c)}:]")
+                    lines.append(f"_store({dst}, {y}, {gen.i(c)})")
                 else:
                     lines += self._group(op, buf, done)
                     y, _ = self.group_y[id(op)]
-                    lines.append(f"{dst} = {y}[0]")
+                    lines.append(f"_store({dst}, {y}, {gen.i(0)})")
                 continue
             blk = op.block
             if op.state is None or blk.name in fused:
@@ -302,8 +366,8 @@ class _Stage:
             args += self.block_args[id(op)]
             call = (f"{gen.kern(blk.kernels.derivative)}({ts}, {self._xs(buf, op)}"
                     f"{''.join(', ' + a for a in args)})")
-            lines.append(f"{kbuf}[{gen.i(op.state.start)}:{gen.i(op.state.stop)}] = "
-                         f"{call}[0]")
+            lines.append(f"_store({kbuf}, {gen.i(op.state.start)}, "
+                         f"{gen.i(op.state.stop - op.state.start)}, {call}, {gen.i(0)})")
         return lines
 
 
@@ -363,6 +427,7 @@ class CompiledProgram:
     def seal(self) -> None:
         """Record the hashes of the machine code numba just cached (see compiled_cache)."""
         compiled_cache.seal(self.module)
+        seal_kernels()
 
     def final(self, t: float, row: int, v: int = 0) -> int:
         """Outputs at the final time (t = n_steps h) and their record, for variant v: the
@@ -388,29 +453,18 @@ def build_program(d, n_rows: int) -> CompiledProgram:
     for k, name in enumerate(d.logged):
         idx = d.signal_index[name]
         logs.append(np.full((n_rows, B) + shapes[idx], np.nan))
-        record.append(f"L{k}[row, v] = s{idx}[0]")
+        record.append(f"_rec(L{k}, row, v, s{idx})")
     from .finite import unlogged_signals      # every other output: finite, or status 2
     record += [f"if not _finite(s{idx}): return 2, n, row + 1" for idx in unlogged_signals(d)]
     log_names = [f"L{k}" for k in range(len(logs))]
-    body1 = st.outputs("x1", "t")
-    der1 = st.derivatives("x1", "t", "K2[0]")
-    rest = []
-    for s, (_, coeffs) in enumerate(stages, start=1):
-        rest.append("for i in range(N):")
-        expr = "xv[i]"
-        if coeffs:
-            j0 = coeffs[0][0]
-            expr = f"a[{s}, {j0}] * K2[{j0}, i] + xv[i]"
-            for j, _ in coeffs[1:]:
-                expr = f"({expr}) + a[{s}, {j}] * K2[{j}, i]"
-        rest.append(f"    Xv[i] = {expr}")
-        rest.append(f"ts = t + c[{s}]")
-        rest += st.outputs("X2", "ts")
-        rest += st.derivatives("X2", "ts", f"K2[{s}]")
+    # one stage, written once, inside a loop over the stages (stage 1 reads a copy of x_n):
+    # a quarter of the code numba must type and optimise for RK4
+    stage_out = st.outputs("X2", "ts")
+    stage_der = st.derivatives("X2", "ts", "K2, stg")
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
         final = f"({final} + b[{m}] * K2[{j}, i])"
-    source = _module_source(gen, st, log_names, record, body1, der1, rest, final, N)
+    source = _module_source(gen, st, log_names, record, stage_out, stage_der, final)
     module = compiled_cache.load(source)
     args = [v for _, v in gen.args]
     a = np.zeros((S, S))
@@ -426,7 +480,11 @@ def build_program(d, n_rows: int) -> CompiledProgram:
     return CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B)
 
 
-def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> str:
+_HELPERS = ("_pick", "_put0", "_put1", "_put2", "_putn", "_vecmat_into", "_view0", "_view1",
+            "_view2", "_viewn", "_zeros", "_copy", "_store", "_rec", "_finite")
+
+
+def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> str:
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
     fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I"
@@ -438,7 +496,8 @@ def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> s
     out = ["# fwdstep compiled program (generated; see fwdstep/backend_numba.py)",
            f"# numba {numba.__version__}", *digests,
            "import math", "import numpy as np", "from numba import njit, prange",
-           "from fwdstep.backend_numba import kernel as _kernel, _pick, _flat, _vecmat, _finite",
+           "from fwdstep.backend_numba import kernel as _kernel",
+           *[f"{h} = _kernel('fwdstep.backend_numba', {h!r})" for h in _HELPERS],
            *gen.imports, "CACHE = True", "", ""]
 
     def fn(header, body, decorator="@njit(cache=CACHE)"):
@@ -447,15 +506,21 @@ def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> s
         out.extend("    " + line for line in body)
         out.extend(["", ""])
 
-    run_body = picks + [
+    run_body = picks + [line for lines in st.prologue.values() for line in lines] + [
         "N = xn.shape[1]",
-        "x1 = xn[v:v + 1]", "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]",
+        "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]",
         "for n in range(n0, n1):",
         "    t = n * h",
     ]
-    inner = body1 + ["if n % every == 0 or final:", "    t_log[row] = t"]
-    inner += ["    " + r for r in record] + ["    row += 1", "if final:",
-                                                 "    return 0, n, row"] + der1 + rest
+    # x_i = x_n + sum_j a_ij k_j over the nonzero a_ij, in the NumPy path's order
+    stage = ["ts = t + c[stg]",
+             "for i in range(N):", "    acc = xv[i]", "    for j in range(stg):",
+             "        if a[stg, j] != 0.0:", "            acc = acc + a[stg, j] * K2[j, i]",
+             "    Xv[i] = acc"] + stage_out
+    stage += ["if stg == 0 and (n % every == 0 or final):", "    t_log[row] = t"]
+    stage += ["    " + r for r in record] + ["    row += 1", "    if final:",
+                                                "        return 0, n, row"] + stage_der
+    inner = ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
               "    if not (abs(w) <= bound):", "        bad = True",
               "if bad:", "    return 1, n + 1, row"]
@@ -473,7 +538,7 @@ def _module_source(gen, st, log_names, record, body1, der1, rest, final, N) -> s
 
 
 # ---------------------------------------------------------------------------- helpers
-@njit(cache=False)
+# Plain functions, jitted (and cached) like kernels by the generated module.
 def _pick(P, v):
     """Variant v's slice of a parameter array (shared when its batch axis is 1)."""
     if P.shape[0] > 1:
@@ -481,14 +546,32 @@ def _pick(P, v):
     return P[0:1]
 
 
-@njit(cache=False)
-def _flat(a):
-    """A (1, *shape) signal as a contiguous (1, size) array."""
-    c = np.ascontiguousarray(a)
-    return c.reshape((c.shape[0], c.size // c.shape[0]))
+def _put0(V, c, s):
+    """V[0, c] = the scalar signal s (1,)."""
+    V[0, c] = s[0]
 
 
-@njit(cache=False)
+def _put1(V, c, s):
+    """V[0, c:c + n] = the vector signal s (1, n), of any layout, without a copy."""
+    for i in range(s.shape[1]):
+        V[0, c + i] = s[0, i]
+
+
+def _put2(V, c, s):
+    """V[0, c:c + n p] = the matrix signal s (1, n, p) in row-major order."""
+    n, p = s.shape[1], s.shape[2]
+    for i in range(n):
+        for j in range(p):
+            V[0, c + i * p + j] = s[0, i, j]
+
+
+def _putn(V, c, s):
+    """The same for a signal of any rank (one copy)."""
+    flat = np.ascontiguousarray(s).ravel()
+    for i in range(flat.size):
+        V[0, c + i] = flat[i]
+
+
 def _finite(a):
     """Whether every element of a signal is finite (run_one returns status 2 otherwise)."""
     for w in a.flat:
@@ -497,13 +580,56 @@ def _finite(a):
     return True
 
 
-@njit(cache=False)
-def _vecmat(V, M):
-    """V (1, n) @ M (1, n, m) -> (1, m)."""
+def _view0(Y, a):
+    """Element a of row 0 of Y as a scalar signal (1,) (a view when Y is C-contiguous).
+    These helpers keep reshapes and slice assignments (whose error paths cost numba
+    seconds to compile) out of the generated loop: they are compiled once, then cached."""
+    return np.ascontiguousarray(Y[0, a:a + 1])
+
+
+def _view1(Y, a, n):
+    """Y[0, a:a + n] as a vector signal (1, n)."""
+    return np.ascontiguousarray(Y[0, a:a + n]).reshape((1, n))
+
+
+def _view2(Y, a, n, p):
+    """Y[0, a:a + n p] as a matrix signal (1, n, p)."""
+    return np.ascontiguousarray(Y[0, a:a + n * p]).reshape((1, n, p))
+
+
+def _viewn(Y, a, size, shape):
+    """Y[0, a:a + size] as a signal (1, *shape)."""
+    return np.ascontiguousarray(Y[0, a:a + size]).reshape((1,) + shape)
+
+
+def _zeros(n):
+    """A (1, n) buffer."""
+    return np.zeros((1, n))
+
+
+def _copy(V, c, X, a, n):
+    """V[0, c:c + n] = X[0, a:a + n]."""
+    for i in range(n):
+        V[0, c + i] = X[0, a + i]
+
+
+def _store(K, s, a, n, y, c):
+    """K[s, a:a + n] = y[0, c:c + n] (a stage derivative)."""
+    for i in range(n):
+        K[s, a + i] = y[0, c + i]
+
+
+def _rec(L, row, v, s):
+    """L[row, v] = s[0] (a record of a logged signal)."""
+    L[row, v] = s[0]
+
+
+def _vecmat_into(V, M, Y):
+    """Y (1, m) = V (1, n) @ M (1, n, m), in place."""
     n, m = M.shape[1], M.shape[2]
-    y = np.zeros((1, m))
+    for j in range(m):
+        Y[0, j] = 0.0
     for i in range(n):
         vi = V[0, i]
         for j in range(m):
-            y[0, j] += vi * M[0, i, j]
-    return y
+            Y[0, j] += vi * M[0, i, j]

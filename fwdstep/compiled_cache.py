@@ -182,6 +182,66 @@ def seal(module) -> None:
         warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
 
 
+# ---------------------------------------------------------------------------- kernel caches
+#: numba's cache files of jitted block kernels live in ``<cache>/kernels/<key>``, where the key
+#: hashes the source files the kernel depends on (its module and every helper's module) and
+#: the numba and Python versions: an edited block gets a new folder, never stale code.
+KERNELS = "kernels"
+_SUMS = "sums.json"
+
+
+def _tree_files(folder: str) -> list:
+    return sorted(p for p in glob.glob(os.path.join(folder, "**", "*"), recursive=True)
+                  if p.endswith((".nbi", ".nbc")))
+
+
+def kernel_folder(key: str) -> str | None:
+    """The private folder for numba's cache of the kernels with this key, its files checked
+    against the sums recorded by ``seal_folder`` (mismatching files removed); None when no
+    safe folder can be had (the kernels are then compiled in memory)."""
+    base = cache_dir()
+    root = os.path.join(base, KERNELS)
+    folder = os.path.join(root, key)
+    for path in (base, root, folder):
+        if private_dir(path) is not None:
+            return None            # load() says why, once, for the generated module
+    files = _tree_files(folder)
+    if files:
+        try:
+            with open(os.path.join(folder, _SUMS), encoding="utf-8") as fh:
+                sums = json.load(fh)
+        except (OSError, ValueError):
+            sums = None
+        rel = {f: os.path.relpath(f, folder) for f in files}
+        ok = isinstance(sums, dict) and all(
+            rel[f] in sums and _sha(_read(f)) == sums[rel[f]] for f in files)
+        if not ok:
+            warn(f"compiled kernel cache {key} does not match its recorded hashes; "
+                 "compiling afresh")
+            for f in files:
+                try:
+                    os.unlink(f)
+                except OSError:
+                    pass
+    return folder
+
+
+def seal_folder(folder: str) -> None:
+    """Record the hashes of numba's files in a kernel folder (faults only warn)."""
+    try:
+        sums = {os.path.relpath(f, folder): _sha(_read(f)) for f in _tree_files(folder)}
+        target = os.path.join(folder, _SUMS)
+        try:
+            with open(target, encoding="utf-8") as fh:
+                if json.load(fh) == sums:
+                    return
+        except (OSError, ValueError):
+            pass
+        _atomic_write(folder, target, json.dumps(sums, sort_keys=True).encode())
+    except OSError as exc:
+        warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
+
+
 def _describe(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror

@@ -165,3 +165,52 @@ class Doubler(Block):
     assert len(seen) == 2 and seen[0] != seen[1]
     changed = [a for a, b in zip(seen[0].splitlines(), seen[1].splitlines()) if a != b]
     assert len(changed) == 1 and changed[0].startswith("# doubler.py ")
+
+
+def test_an_edited_helper_module_never_reuses_a_cached_kernel(folder, tmp_path, monkeypatch):
+    """Kernels are cached on disk (a new structure then compiles only its loop), in a folder
+    keyed by every source file they depend on.  numba's own key is the kernel's file and
+    bytecode only: a kernel whose helper lives in another, edited file would load stale
+    machine code (2 x + 1 below) without that folder key."""
+    import importlib
+    import sys
+    from fwdstep import backend_numba
+    (tmp_path / "h24_helper.py").write_text("def helper(x):\n    return 2.0 * x\n")
+    (tmp_path / "h24_kernel.py").write_text(
+        "from h24_helper import helper\n\n\ndef kern(x):\n    return helper(x) + 1.0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def fresh_kernel():
+        for name in ("h24_helper", "h24_kernel"):
+            sys.modules.pop(name, None)
+        importlib.invalidate_caches()
+        fn = importlib.import_module("h24_kernel").kern
+        return backend_numba.jit_kernel(fn)[0]
+
+    first = fresh_kernel()
+    assert first(1.0) == 3.0
+    backend_numba.seal_kernels()
+    kernel_files = [p for p in (folder / compiled_cache.KERNELS).rglob("*.nb[ic]")]
+    assert kernel_files, "the kernel was not cached on disk"
+    again = fresh_kernel()                       # same sources: loaded from the disk cache
+    assert again is not first and again(1.0) == 3.0 and again.stats.cache_hits
+    (tmp_path / "h24_helper.py").write_text("def helper(x):\n    return 5.0 * x\n")
+    edited = fresh_kernel()
+    assert edited(1.0) == 6.0 and not edited.stats.cache_hits
+
+
+def test_tampered_kernel_cache_file_is_removed_before_numba_reads_it(folder, capfd):
+    where = compiled_cache.kernel_folder("k" * 24)
+    sub = os.path.join(where, "blocks_x")
+    os.makedirs(sub)
+    index = os.path.join(sub, "m.kern-1.py311.nbi")
+    with open(index, "wb") as fh:
+        fh.write(b"written by numba")
+    compiled_cache.seal_folder(where)
+    assert compiled_cache.kernel_folder("k" * 24) == where and os.path.exists(index)
+    assert capfd.readouterr().err == ""
+    with open(index, "wb") as fh:
+        fh.write(b"replaced by someone else")
+    compiled_cache.kernel_folder("k" * 24)
+    assert not os.path.exists(index)
+    assert "does not match its recorded hashes" in capfd.readouterr().err
