@@ -351,3 +351,16 @@ def test_compiled_sweep_equals_one_by_one_compiled_runs():
         own = alone.metrics()
         for m in METRICS:
             assert v.metrics[m] == pytest.approx(own[m], rel=1e-12, abs=1e-15), (v.values, m)
+
+
+def test_backend_compiled_without_numba_is_one_line(path, tmp_path, monkeypatch, capsys):
+    import sys
+    monkeypatch.setitem(sys.modules, "numba", None)          # import numba -> ImportError
+    code = cli.main(["sweep", path, "--grid", "K=10,20", "--backend", "compiled", "-q",
+                     "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert err.endswith("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
+                        "--backend numpy)")
+    with pytest.raises(ConfigError, match="both swept and set"):
+        run_sweep(path, grid={"simulation.backend": ["numpy"]}, backend="numpy")
