@@ -19,7 +19,9 @@ wired, the ranks of the signals): every number — parameters, sizes, state offs
 argument, so a sweep over ell or n compiles once.  It is stored in the compiled-code cache
 (``fwdstep.compiled_cache``: private directory, content-hash checked) under a hash that
 includes the source files of every kernel it calls, so an edited block never reuses stale
-machine code.
+machine code.  The kernels themselves (and the helpers they call) are cached by numba in
+``<cache>/kernels/<key>``, the key hashing the contents of every file they depend on, so a
+never-seen structure built from known blocks compiles only its own loop.
 
 Batches (``fwdstep sweep --backend compiled``): ``run_all`` runs the variants with numba's
 ``prange`` over the machine's cores, each variant exactly as a single run would be.
@@ -408,6 +410,14 @@ class CompiledProgram:
         self.module, self.args, self.xn, self.X, self.K = module, args, xn, X, K
         self.logs, self.t_log, self.consts, self.batch = logs, t_log, consts, batch
         self.I = consts["I"]
+        self._sealed = False
+
+    def _first_call_sealed(self) -> None:
+        """Seal right after the call that compiled (not only at the end of the run), so
+        another process starting meanwhile finds the cache files already recorded."""
+        if not self._sealed:
+            self._sealed = True
+            self.seal()
 
     def _fixed(self):
         c = self.consts
@@ -416,13 +426,16 @@ class CompiledProgram:
 
     def run(self, n0: int, n1: int, row: int) -> tuple:
         """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged, next step, next row)."""
-        return self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
-                                   *self.logs)
+        out = self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
+                                  *self.logs)
+        self._first_call_sealed()
+        return out
 
     def run_batch(self, n0: int, n1: int, rows, status, n_next, alive) -> None:
         """Every alive variant, steps n0..n1-1, in parallel; updates rows/status/n_next."""
         self.module.run_all(n0, n1, rows, status, n_next, alive, *self._fixed(), *self.args,
                             *self.logs)
+        self._first_call_sealed()
 
     def seal(self) -> None:
         """Record the hashes of the machine code numba just cached (see compiled_cache)."""
