@@ -71,7 +71,7 @@ def scalar_product_output(t, x, k, u):
     """y = k u, k one number per variant."""
     c = np.ascontiguousarray(u)
     flat = c.reshape((c.shape[0], c.size // c.shape[0]))
-    y = flat * k.reshape((k.shape[0], 1))
+    y = flat * k[:, None]           # k may be a strided view (no reshape in numba)
     return (y.reshape((y.shape[0],) + c.shape[1:]),)
 
 

@@ -32,7 +32,7 @@ def dead_zone_output(t, x, u, lower, upper):
 
 def rate_limiter_derivative(t, x, u, time_constant, rising, falling):
     """x' = min(max((u - x) / T, -falling), rising), per element (x, u flattened)."""
-    uf = u.reshape((u.shape[0], x.shape[1]))
+    uf = np.ascontiguousarray(u).reshape((u.shape[0], x.shape[1]))   # u may be a strided view
     return np.minimum(np.maximum((uf - x) / time_constant, -falling), rising)
 
 
@@ -60,13 +60,13 @@ def switch_output_same(t, x, u1, control, u2, threshold):
 
 def switch_output_scalar1(t, x, u1, control, u2, threshold):
     """Scalar control, vector data."""
-    c = control.reshape((control.shape[0], 1))
+    c = control[:, None]            # control may be a strided view (no reshape in numba)
     return (np.where(c >= threshold, u1, u2),)
 
 
 def switch_output_scalar2(t, x, u1, control, u2, threshold):
     """Scalar control, matrix data."""
-    c = control.reshape((control.shape[0], 1, 1))
+    c = control[:, None, None]
     return (np.where(c >= threshold, u1, u2),)
 
 
