@@ -7,7 +7,8 @@
     The two error logs are compared, so both sides integrate the same closed loop.
 (b) The same sweep in >= 8 batches on 2 local worker processes against 1: throughput ratio
     (target >= 1.7).  The machine's load average is printed with it: other processes on the
-    same cores take their share.
+    same cores take their share.  The CPU seconds spent in this process and in the workers
+    are printed too, with the ratio they allow on two free cores (Amdahl).
 
     python benchmarks/sweep_benchmark.py [--t-final 2] [--samples 256] [--repeats 3]
 """
@@ -27,6 +28,8 @@ sys.path.insert(0, HERE)
 
 from hand_loops import A1, A2, A3, A4  # noqa: E402
 
+from fwdstep.compiler import compile_batch  # noqa: E402
+from fwdstep.simulate import simulate  # noqa: E402
 from fwdstep.spec import load_spec  # noqa: E402
 from fwdstep.sweep import run_sweep  # noqa: E402
 
@@ -127,6 +130,13 @@ def main(argv=None) -> int:
                                       p["Gamma"], p["theta0"], p["A"], p["w"], p["c"],
                                       p["q0"])
 
+        def integrate(result):
+            """The same batch compiled and integrated, nothing else (where the time goes)."""
+            lam = [v.values["Lambda"] for v in result.variants]
+            d = compile_batch([load_spec(path, {**over, "Lambda": x}) for x in lam])
+            d.logged = [d.resolve("e.y")]
+            return _timed(lambda: simulate(d))[:2]
+
         probe = sweep(workers=1)
         log = hand(probe)
         e = probe.parts[0]["e"]
@@ -142,20 +152,36 @@ def main(argv=None) -> int:
             w, c, _ = _timed(lambda: hand(probe))
             walls["hand"].append(w)
             cpus["hand"].append(c)
+            w, c = integrate(probe)
+            walls.setdefault("integrate", []).append(w)
+            cpus.setdefault("integrate", []).append(c)
         med = {k: float(np.median(v)) for k, v in walls.items()}
         cmed = {k: float(np.median(v)) for k, v in cpus.items()}
         print(f"    sweep (load + plan + one batch) / hand batched loop: "
               f"{med['sweep'] / med['hand']:.2f}x wall, {cmed['sweep'] / cmed['hand']:.2f}x cpu "
               f"(target <= 1.2)")
+        print(f"    of which integrating the batch (fwdstep.simulate alone) / hand: "
+              f"{med['integrate'] / med['hand']:.2f}x wall, "
+              f"{cmed['integrate'] / cmed['hand']:.2f}x cpu")
         size = int(np.ceil(args.samples / args.batches))
-        rates = {}
+        rates, split = {}, []
         for workers in (1, 2, 1, 2):
+            c0 = os.times()
             w, _, r = _timed(lambda: sweep(workers=workers, batch_size=size))
+            c1 = os.times()
             rates.setdefault(workers, []).append(w)
+            if workers == 2:     # CPU seconds of this process (serial) and of the workers
+                split.append((c1.user - c0.user + c1.system - c0.system,
+                              c1.children_user - c0.children_user
+                              + c1.children_system - c0.children_system))
         one, two = np.median(rates[1]), np.median(rates[2])
+        serial, parallel = np.median([s for s, _ in split]), np.median([p for _, p in split])
         print(f"(b) {len(r.batches)} batches of <= {size}: 2 workers / 1 worker throughput "
               f"{one / two:.2f}x (target >= 1.7); load average after: "
               f"{os.getloadavg()[0]:.2f}")
+        print(f"    with 2 workers: {serial:.2f} s CPU in this process (load, plan, collect), "
+              f"{parallel:.2f} s in the workers: on 2 free cores at most "
+              f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
     finally:
         os.unlink(path)
     return 0
