@@ -179,10 +179,21 @@ def main(argv=None) -> int:
                    f"simulation.t_final={args.t_final}"]
             cold = cpu_of_child(cmd + ["-o", os.path.join(tmp, "a")], env)
             warm = cpu_of_child(cmd + ["-o", os.path.join(tmp, "b")], env)
+            # a never-seen structure whose kernels are cached: the same diagram logging
+            # one more signal (another generated loop, the same block kernels)
+            with open(SLOTINE, encoding="utf-8") as fh:
+                text = fh.read().replace("\n  - adapt.theta_hat\n",
+                                         "\n  - adapt.theta_hat\n  - s.y\n", 1)
+            other = os.path.join(tmp, "slotine_li_other.yaml")
+            with open(other, "w", encoding="utf-8") as fh:
+                fh.write(text)
+            new_structure = cpu_of_child([other if c == SLOTINE else c for c in cmd]
+                                         + ["-o", os.path.join(tmp, "d")], env)
             numpy_run = cpu_of_child([c for c in cmd if c not in ("--backend", "compiled")]
                                      + ["-o", os.path.join(tmp, "c")], env)
         print(f"  fresh process, whole 'fwdstep run' CPU: compiled cold (empty cache) "
-              f"{cold:.1f} s, compiled from the cache {warm:.1f} s, NumPy path {numpy_run:.1f} s")
+              f"{cold:.1f} s, compiled from the cache {warm:.1f} s, a new structure with "
+              f"cached kernels {new_structure:.1f} s, NumPy path {numpy_run:.1f} s")
     return 0
 
 
