@@ -124,8 +124,8 @@ class VariantSpecs:
         if self._fast:
             try:
                 derived = self._derive(values)
-            except DiagramError:
-                derived = None
+            except (DiagramError, ValueError, TypeError, KeyError, AttributeError):
+                derived = None                   # the full loader decides (and says why)
             if derived is not None:
                 self.derived += 1
                 spec, rebuilt = derived
