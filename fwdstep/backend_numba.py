@@ -102,6 +102,7 @@ def _OpsNamespace():
 
 
 _kernel_folders: set = set()
+_key_folders: dict = {}
 
 
 def _cache_on_disk(dispatcher, files: set) -> None:
@@ -114,7 +115,9 @@ def _cache_on_disk(dispatcher, files: set) -> None:
     key = hashlib.sha256("\n".join(
         [numba.__version__, sys.version] + [f"{os.path.basename(f)} {_file_digest(f)}"
                                             for f in sorted(files)]).encode()).hexdigest()[:24]
-    folder = compiled_cache.kernel_folder(key)
+    if key not in _key_folders:            # checked once per process (hashes every file)
+        _key_folders[key] = compiled_cache.kernel_folder(key)
+    folder = _key_folders[key]
     if folder is None:
         return
     old = config.CACHE_DIR
