@@ -440,6 +440,17 @@ class CompiledProgram:
                             *self.logs)
         self._first_call_sealed()
 
+    def compile(self) -> None:
+        """Compile the run functions now, running no step (numba compiles on first call).
+        ``simulate`` calls it with signals deferred: an exception raised by a signal handler
+        inside numba's compiler callbacks is swallowed there and leaves a broken function."""
+        B = self.batch
+        if B == 1:
+            self.run(0, 0, 0)
+        else:
+            z = np.zeros(B, dtype=np.int64)
+            self.run_batch(0, 0, z, z.copy(), z.copy(), np.ones(B, dtype=bool))
+
     def seal(self) -> None:
         """Record the hashes of the machine code numba just cached (see compiled_cache)."""
         compiled_cache.seal(self.module)

@@ -41,7 +41,7 @@ from .errors import BlockRuntimeError, ConfigError, DivergenceError, SimulationE
 from .program import build_program
 from .result import Result
 from .events import apply_updates, plan_events
-from . import finite
+from . import finite, signals
 from .solvers import IVP_METHODS, TABLEAUX, step_plan
 
 
@@ -364,6 +364,9 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     wall0 = _time.perf_counter()
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
     prog = backend_numba.build_program(d, n_rows)
+    with signals.deferred():                  # a signal during numba's compile is acted on
+        prog.compile()                        # after it (raised inside numba's callbacks it
+    late = signals.pending()                  # was swallowed and broke the function)
     B = d.batch
     x = prog.xn                               # (B, N); each variant runs on its own row
     x[...] = d.x0
@@ -376,6 +379,8 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     next_report = wall0 + 1.0
     with np.errstate(all="ignore"):
         try:
+            if late is not None:
+                raise late
             x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
             while n < n_steps:
                 n1 = min(n + backend_numba.CHUNK, n_steps)

@@ -295,6 +295,22 @@ def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, 
     assert json.loads((outdir / "summary.json").read_text())["status"] == "ok"
 
 
+def test_a_signal_during_the_numba_compile_ends_the_run_after_it(tmp_path, capsys, monkeypatch):
+    # numba compiles inside ctypes callbacks, where an exception raised by the signal handler is
+    # swallowed ("Exception ignored ...") and leaves a broken function: the run then ended as
+    # "error" with a RuntimeError.  The compile runs with signals deferred; the signal is acted
+    # on right after it, at t = 0.  (The compile is replaced by the signal alone: no numba time.)
+    backend_numba = pytest.importorskip("fwdstep.backend_numba")
+    monkeypatch.setattr(backend_numba.CompiledProgram, "compile",
+                        lambda self: os.kill(os.getpid(), signal.SIGTERM))
+    outdir = tmp_path / "out"
+    code = cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q", "--no-plots",
+                     "--backend", "compiled"])
+    assert code == 143
+    assert capsys.readouterr().err == "fwdstep: terminated (SIGTERM) at t = 0\n"
+    assert json.loads((outdir / "summary.json").read_text())["status"] == "interrupted"
+
+
 # ------------------------------------------------------------------ budgets
 HUGE_LOG = """\
 blocks:
