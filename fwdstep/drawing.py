@@ -621,7 +621,7 @@ def _write(path: str, data: bytes, force: bool = False) -> None:
     staged, listed in the directory's manifest.json).  A picture fwdstep drew there before is
     replaced; any other file only with ``force``; a directory or a symbolic link never."""
     from .errors import printable
-    from .outputs import MANIFEST_FILE, OutputDir, owned_files
+    from .outputs import MANIFEST_FILE, OutputDir, foreign_manifest, owned_files
     directory, name = os.path.split(os.path.abspath(path))
     if os.path.isdir(path) and not os.path.islink(path):
         raise OutputError(f"cannot write the picture to {path}: it is a directory")
@@ -637,7 +637,7 @@ def _write(path: str, data: bytes, force: bool = False) -> None:
         raise OutputError(f"refusing to replace {printable(path)}: fwdstep did not write it "
                           "(pass --force to replace it, or choose another file with -o)")
     manifest = os.path.join(directory, MANIFEST_FILE)
-    if os.path.lexists(manifest) and not _fwdstep_manifest(manifest):
+    if foreign_manifest(directory):
         raise OutputError(f"cannot write the picture into {printable(directory)}: its "
                           f"{MANIFEST_FILE} was not written by fwdstep and would be replaced; "
                           "choose another directory with -o")
@@ -661,15 +661,6 @@ def _write(path: str, data: bytes, force: bool = False) -> None:
     except (OSError, ValueError) as exc:
         raise OutputError(f"cannot write the picture to {path}: "
                           f"{getattr(exc, 'strerror', None) or exc}") from exc
-
-
-def _fwdstep_manifest(path: str) -> bool:
-    import json
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return json.loads(fh.read(1 << 20)).get("written_by") == "fwdstep"
-    except (OSError, ValueError, AttributeError):
-        return False
 
 
 class _Unwired:

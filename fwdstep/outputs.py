@@ -166,6 +166,9 @@ class OutputDir:
     def _check_existing(self) -> None:
         if not os.path.isdir(self.target):
             return
+        if foreign_manifest(self.target):
+            raise OutputError(_not_ours(os.path.join(self.requested, MANIFEST_FILE),
+                                        os.path.join(self.target, MANIFEST_FILE)))
         ours = owned_files(self.target)
         existing = [n for n in self.expected if os.path.lexists(os.path.join(self.target, n))]
         for n in existing:
@@ -233,6 +236,12 @@ class OutputDir:
             files = {n: _describe(os.path.join(self.dir, n)) for n in names}
             exists = os.path.isdir(self.target)
             if exists:                             # earlier results stay fwdstep's
+                if foreign_manifest(self.target):
+                    self._keep = True
+                    raise OutputError(
+                        _not_ours(os.path.join(self.requested, MANIFEST_FILE),
+                                  os.path.join(self.target, MANIFEST_FILE)) +
+                        f"; this run's files are kept in {printable(self.dir)}")
                 ours = owned_files(self.target)
                 for n in names:                    # re-checked: the user may have acted since
                     old = os.path.join(self.target, n)
@@ -291,6 +300,21 @@ def _holds_cwd(path: str) -> bool:
     except OSError:
         return False
     return cwd == path or cwd.startswith(path.rstrip(os.sep) + os.sep)
+
+
+def foreign_manifest(directory: str) -> bool:
+    """Whether ``directory`` holds a ``manifest.json`` that fwdstep did not write (another
+    tool's file, a link, a directory): fwdstep must not replace it."""
+    path = os.path.join(directory, MANIFEST_FILE)
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            return True
+        with open(path, "rb") as fh:
+            return json.loads(fh.read(1 << 20)).get("written_by") != "fwdstep"
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError, AttributeError):
+        return True
 
 
 def owned_files(directory: str) -> set:

@@ -178,3 +178,26 @@ def test_results_have_ordinary_permissions(diagram, tmp_path):
     os.umask(mask)
     for name in ("result.npz", "summary.json"):
         assert (outdir / name).stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_another_tools_manifest_is_never_replaced(diagram, tmp_path, capsys, force):
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    (outdir / "manifest.json").write_text('{"mine": 1}\n')
+    argv = ["run", diagram, "-o", str(outdir), "-q", "--no-plots"] + (["--force"] if force else [])
+    assert cli.main(argv) == 2
+    assert capsys.readouterr().err == (
+        f"fwdstep: refusing to replace {outdir}/manifest.json: it is a file that fwdstep did "
+        "not write (move it away or choose another directory with -o)\n")
+    assert (outdir / "manifest.json").read_text() == '{"mine": 1}\n'
+    assert sorted(os.listdir(outdir)) == ["manifest.json"]
+
+
+def test_fwdsteps_own_manifest_is_replaced_with_force(diagram, tmp_path, capsys):
+    outdir = tmp_path / "out"
+    assert cli.main(["run", diagram, "-o", str(outdir), "-q", "--no-plots"]) == 0
+    assert cli.main(["run", diagram, "-o", str(outdir), "-q", "--no-plots", "--force"]) == 0
+    manifest = json.loads((outdir / "manifest.json").read_text())
+    assert manifest["written_by"] == "fwdstep"
+    assert sorted(manifest["files"]) == ["result.npz", "summary.json"]
