@@ -63,7 +63,6 @@ import json
 import math
 import os
 import pickle
-import re
 import shutil
 import signal
 import sys
@@ -280,18 +279,16 @@ def variant_bytes(spec, blocks, metric: str | None) -> tuple:
 
 
 def parse_size(text) -> int:
-    """'2GB', '500MB', '1.5e9' -> bytes."""
-    if isinstance(text, (int, float)):
-        return int(text)
-    m = re.fullmatch(r"\s*([0-9.eE+]+)\s*([kKmMgGtT]?)i?[bB]?\s*", str(text))
+    """``--max-memory``: a number of bytes or a size as ``fwdstep.budgets.parse_size`` reads
+    it (2GB, 500MB, 1.5GiB, 1e9); more than zero."""
+    from .budgets import parse_size as size
     try:
-        number = float(m.group(1)) if m else float("nan")
-    except ValueError:
-        number = float("nan")
-    if not m or not math.isfinite(number) or number <= 0:
-        raise ConfigError(f"--max-memory '{text}' must be a size like 2GB, 500MB or 1e9")
-    scale = {"": 1, "k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}[m.group(2).lower()]
-    return int(number * scale)
+        n = int(text) if isinstance(text, (int, float)) else size(text)
+    except ConfigError as exc:
+        raise ConfigError(f"--max-memory: {exc}") from None
+    if n <= 0:
+        raise ConfigError(f"--max-memory '{text}' must be more than zero bytes")
+    return n
 
 
 def plan_batches(specs, blocks, metric, *, sequential=False, workers=1,

@@ -192,7 +192,8 @@ def test_cli_max_memory(path, tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "--max-memory 0.001 MB" in err
     code = cli.main(["sweep", path, "--grid", "K=1,2", "--max-memory", "lots", "-o",
                      str(tmp_path / "o")])
-    assert code == 2 and "must be a size like 2GB" in capsys.readouterr().err
+    assert code == 2 and capsys.readouterr().err == (
+        "fwdstep: --max-memory: size 'lots' is not understood; write e.g. 512MB, 2GiB or 1e9\n")
 
 
 def test_sigterm_keeps_finished_batches_and_resume_finishes(path, tmp_path):
