@@ -74,8 +74,10 @@ def safe_label(label: str) -> str:
         return label.replace("$", r"\$")
 
 
-def signal_info(source, name: str) -> SignalInfo:
-    """Label, unit and component names of signal ``name`` of a Result or CompiledDiagram."""
+def signal_info(source, name: str, typeset: bool = True) -> SignalInfo:
+    """Label, unit and component names of signal ``name`` of a Result or CompiledDiagram.
+    ``typeset=False`` keeps the label as written (no mathtext check, which imports
+    matplotlib): for what is saved, checked again when a figure is drawn."""
     diagram = getattr(source, "diagram", source)
     meta = {"label": None, "unit": "", "components": None}
     stored = getattr(source, "signal_labels", None) or {}
@@ -93,7 +95,8 @@ def signal_info(source, name: str) -> SignalInfo:
     else:
         real = (getattr(source, "aliases", None) or {}).get(name, name)
         meta.update({k: v for k, v in stored.get(real, stored.get(name, {})).items() if v})
-    return SignalInfo(name, safe_label(meta["label"] or name), meta["unit"] or "",
+    label = meta["label"] or name
+    return SignalInfo(name, safe_label(label) if typeset else label, meta["unit"] or "",
                       tuple(meta["components"] or ()))
 
 
@@ -110,7 +113,7 @@ class _SpecView:
 def signal_record(spec, blocks, name: str) -> dict:
     """What a saved sweep keeps of signal ``name`` so that figures and ``fwdstep compare``
     name it as a run does: its name, the block port it resolves to, label, unit, components."""
-    info = signal_info(_SpecView(spec, blocks), name)
+    info = signal_info(_SpecView(spec, blocks), name, typeset=False)
     return {"name": name, "real": spec.aliases.get(name, name), "label": info.label,
             "unit": info.unit, "components": list(info.components) or None}
 
@@ -119,7 +122,7 @@ def signal_labels(result: Result) -> dict:
     """Every recorded signal's label/unit/components, as stored with a saved result."""
     out = {}
     for name in result.names:
-        info = signal_info(result, name)
+        info = signal_info(result, name, typeset=False)
         out[name] = {"label": info.label, "unit": info.unit,
                      "components": list(info.components) or None}
     return out
