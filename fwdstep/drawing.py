@@ -94,6 +94,15 @@ def shape_text(shape: tuple) -> str:
     return "1" if not shape else "×".join(str(s) for s in shape)
 
 
+def _as_written(file: str, top: str) -> str:
+    """A subsystem's file as the diagram names it (lib/qd_star.yaml), not as seen from the
+    current directory; the folder and name when it lies outside the diagram's folder."""
+    rel = os.path.relpath(file, os.path.dirname(os.path.abspath(top)))
+    if rel.startswith(".."):
+        rel = os.path.join(os.path.basename(os.path.dirname(file)), os.path.basename(file))
+    return rel
+
+
 def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Picture:
     """The picture of a CompiledDiagram; subsystems deeper than ``depth`` are one box;
     ``tags``: widely fed-back signals as named tags (``with_tags``)."""
@@ -124,7 +133,7 @@ def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Pict
                               "/".join(parts[:k]) for k in range(1, len(parts))))
     # frames, and collapsed subsystems with their own port names
     for prefix, file in sub_files.items():
-        label = prefix.split("/")[-1] + (f"  ({os.path.relpath(file)})" if file else "")
+        label = prefix.split("/")[-1] + (f"  ({_as_written(file, spec.file)})" if file else "")
         if owner(prefix + "/x") == prefix + "/x":
             frames[prefix] = label
     collapsed_in, collapsed_out = {}, {}

@@ -184,6 +184,7 @@ def headline(description: str, width: int = 100, max_lines: int = 3) -> str:
         lines.append(ln.strip())
     text = " ".join(lines)
     text = re.split(r"(?<=[.!?])\s+(?=[A-Z])", text, maxsplit=1)[0]
+    text = text.rstrip(",;:")         # it introduced the displayed lines that were cut
     wrapped = textwrap.wrap(text, width)
     if len(wrapped) > max_lines:
         clauses = re.split(r"(?<=[,;:])\s+", text)

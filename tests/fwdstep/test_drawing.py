@@ -1,5 +1,6 @@
 """fwdstep graph: boxes, ports, shapes, feedback, frames, equation numbers; dot and fallback."""
 import glob
+import os
 import shutil
 import subprocess
 import sys
@@ -62,6 +63,14 @@ def test_subsystems_are_frames_or_one_box_at_a_chosen_depth():
     assert {"tau", "tau_star", "z", "zdot"} <= set(plant.inputs)
     assert not any(k.startswith("plant/") for k in top.boxes)
     assert ("torque", "tau", "plant", "tau") in {e[:4] for e in top.edges}
+
+
+def test_frames_name_their_file_as_the_diagram_does_from_any_directory(monkeypatch, tmp_path):
+    path = os.path.abspath("diagrams/theorem9.yaml")
+    monkeypatch.chdir(tmp_path)              # was shown as ../../work/main/diagrams/lib/...
+    frames = build_picture(fwdstep.load_diagram(path)).frames
+    assert frames["plant"] == "plant  (lib/plant.yaml)"
+    assert frames["qds"] == "qds  (lib/qd_star.yaml)"
 
 
 @needs_dot

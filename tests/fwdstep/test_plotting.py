@@ -163,7 +163,7 @@ def test_long_titles_wrap_at_words_and_fit_the_figure(tmp_path):
     assert len(lines) == 2 and all(len(ln) <= 60 for ln in lines) and short.endswith(" …")
     kept = " ".join(lines)[:-2]
     assert clauses.startswith(kept) and clauses[len(kept)] == ","   # ends at a clause
-    assert headline("Indented lines end it:\n  (117) chi'' = x") == "Indented lines end it:"
+    assert headline("Indented lines end it:\n  (117) chi'' = x") == "Indented lines end it"   # its colon introduced the cut lines
 
 
 def test_time_zero_is_inside_the_axes(tmp_path):
