@@ -171,13 +171,7 @@ def seal(module) -> None:
         files = _numba_files(folder, name)
         sums = {os.path.basename(f): _sha(_read(f)) for f in files}
         target = _manifest(folder, name)
-        try:
-            with open(target, encoding="utf-8") as fh:
-                if json.load(fh) == sums:
-                    return
-        except (OSError, ValueError):
-            pass
-        _atomic_write(folder, target, json.dumps(sums, sort_keys=True).encode())
+        _record(folder, target, sums)
     except OSError as exc:
         warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
 
@@ -231,15 +225,20 @@ def seal_folder(folder: str) -> None:
     try:
         sums = {os.path.relpath(f, folder): _sha(_read(f)) for f in _tree_files(folder)}
         target = os.path.join(folder, _SUMS)
-        try:
-            with open(target, encoding="utf-8") as fh:
-                if json.load(fh) == sums:
-                    return
-        except (OSError, ValueError):
-            pass
-        _atomic_write(folder, target, json.dumps(sums, sort_keys=True).encode())
+        _record(folder, target, sums)
     except OSError as exc:
         warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
+
+
+def _record(folder: str, target: str, sums: dict) -> None:
+    """Write the hashes ``sums`` to ``target`` atomically, unless it already holds them."""
+    try:
+        with open(target, encoding="utf-8") as fh:
+            if json.load(fh) == sums:
+                return
+    except (OSError, ValueError):
+        pass
+    _atomic_write(folder, target, json.dumps(sums, sort_keys=True).encode())
 
 
 def _describe(exc: BaseException) -> str:
