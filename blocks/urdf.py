@@ -10,7 +10,8 @@ reduction; ``parameters: base``).  The derivation of the regressor is in docs/ur
 pinocchio (PyPI ``pin``) and ``example-robot-data`` are the optional extra ``fwdstep[robots]``:
 without them this module still imports and registers its blocks (``fwdstep blocks`` lists them
 with an install hint), and building one raises a one-line ParameterError.  pinocchio's calls
-cannot run inside numba-compiled code: these blocks run on the NumPy path only.
+cannot run inside numba-compiled code: the compiled backend calls these blocks' methods through
+numba's object mode (``compile_with = "objmode"``, fwdstep/block.py).
 """
 from __future__ import annotations
 
@@ -247,7 +248,8 @@ class URDFArm(MechanicalPlant):
     neutral configuration and their bodies merged into their parents.  Output ``theta`` is the
     robot's true parameter vector (constant), in the form of ``URDFRegressor`` with the same
     ``parameters``, so a diagram can plot theta_hat against it.  ``tau_star`` is optional:
-    unconnected, it is zero.  State order: q (n), then qdot (n).  NumPy path only (pinocchio).
+    unconnected, it is zero.  State order: q (n), then qdot (n).  Compiled runs call it in
+    numba's object mode (pinocchio).
 
     Equation: (1), qddot = H^-1 (tau + tau_star - tau_f - C qdot - g) by pinocchio.aba.
 
@@ -280,7 +282,7 @@ class URDFArm(MechanicalPlant):
     }
     example = {"robot": "ur5", "q0": [0.1, -1.0, 1.2, 0.0, 0.5, 0.0], "damping": 0.1}
     summary = classmethod(_summary_with_hint)
-    cannot_compile = "it calls pinocchio, which numba cannot compile"
+    compile_with = "objmode"        # pinocchio: the compiled loop calls output/derivative
 
     def setup(self, robot, urdf, locked_joints, gravity, parameters, damping, coulomb,
               coulomb_velocity, q0, qdot0):
@@ -350,7 +352,7 @@ class URDFRegressor(Block):
     the joint origin], ``URDFArm``'s ``theta`` output); many are not identifiable (columns of Y
     that vanish or are combinations of others): ``parameters: base`` keeps the independent
     columns and the plant's ``theta`` becomes the base parameters beta with Y_base beta = Y theta.
-    NumPy path only (pinocchio).
+    Compiled runs call it in object mode (pinocchio).
 
     Equation: Property 3, Y theta = H zetad + C zeta + g (docs/urdf-regressor.md, eq. (R)).
 
@@ -370,7 +372,7 @@ class URDFRegressor(Block):
     params = _robot_params()
     example = {"robot": "ur5"}
     summary = classmethod(_summary_with_hint)
-    cannot_compile = "it calls pinocchio, which numba cannot compile"
+    compile_with = "objmode"        # pinocchio: the compiled loop calls output/derivative
 
     def setup(self, robot, urdf, locked_joints, gravity, parameters):
         self._pin = _pinocchio(self.name, self.type_name)

@@ -163,6 +163,8 @@ def refusal(block) -> str | None:
     """Why ``block`` cannot run compiled, or None."""
     if type(block).cannot_compile:
         return type(block).cannot_compile
+    if python_block(block):
+        return None
     k = block.kernels
     if getattr(block, "linear_form", None) is not None and _fusable_alone(block):
         return None
@@ -175,6 +177,16 @@ def refusal(block) -> str | None:
             return (f"its kernel {getattr(fn, '__qualname__', fn)!r} is not a module-level "
                     "function")
     return None
+
+
+def python_block(block) -> bool:
+    """Whether the compiled loop calls ``block``'s methods through object mode
+    (``compile_with = "objmode"``, fwdstep/block.py) instead of jitting its kernels."""
+    how = type(block).compile_with
+    if how not in ("numba", "objmode"):
+        raise ConfigError(f"block '{block.name}' ({block.type_name}): compile_with must be "
+                          f"'numba' or 'objmode', not {how!r}", block=block.name)
+    return how == "objmode"
 
 
 def _fusable_alone(block) -> bool:
@@ -192,6 +204,7 @@ class _Gen:
         self.imports: list = []     # header lines binding kernels
         self.files: set = set()
         self.kernels: dict = {}     # id(fn) -> name
+        self.python: list = []      # blocks called through object mode, by number
 
     def arg(self, prefix: str, value) -> str:
         name = f"{prefix}{len(self.args)}"
@@ -239,7 +252,10 @@ class _Stage:
         self.group_no = {}
         self.block_args = {}
         for kind, op, _ in ops:
-            if kind == "call":
+            if kind == "call" and python_block(op.block):
+                gen.python.append(op.block)
+                self.block_args[id(op)] = len(gen.python) - 1
+            elif kind == "call":
                 blk = op.block
                 names = [gen.arg("P", np.ascontiguousarray(getattr(blk.p, n), dtype=np.float64))
                          for n in blk.kernels.params]
@@ -248,6 +264,8 @@ class _Stage:
                 for n in names:
                     if n.startswith("P"):
                         self.params[n] = True
+        # the program's entry in the table of object-mode blocks (set by build_program)
+        self.handle = gen.arg("H", np.zeros(1, dtype=np.int64)) if gen.python else None
         self.groups = {}
         self.group_plan = {}
         self.prologue = {}          # group number -> lines allocating its buffers
@@ -294,6 +312,13 @@ class _Stage:
                     done.update(idx for idx, _ in op.outputs)
                 continue
             blk = op.block
+            if python_block(blk):
+                if blk.outputs:
+                    lines += self._python_call(op, "_pyout", buf, ts, [
+                        (f"s{idx}", len(self.shapes[idx])) for idx in op.outputs],
+                        [self._read(u, done) for u in op.inputs])
+                    done.update(op.outputs)
+                continue
             k = blk.kernels
             if k.output is None:
                 continue
@@ -314,6 +339,19 @@ class _Stage:
                     lines.append(f"s{idx} = r[{j}]")
             done.update(op.outputs)
         return lines
+
+    def _python_call(self, op, fn, buf, ts, results, inputs) -> list:
+        """Block number j's method called in object mode: ``results`` are (variable, rank of
+        the signal); each comes back as a C-contiguous float64 array (1, *shape), the type
+        numba is told from the declared port's rank (the sizes stay run-time values)."""
+        j = self.block_args[id(op)]
+        types_ = ", ".join(f'{name}="float64[{", ".join([":"] * rank + ["::1"])}]"'
+                           for name, rank in results)
+        targets = "".join(f"{name}, " for name, _ in results)
+        return [f"xo{j} = {self._xs(buf, op)}",
+                f"with _objmode({types_}):",
+                f"    {targets}= {fn}({self.handle}[0], {j}, v, {ts}, xo{j}"
+                f"{''.join(', ' + a for a in inputs)})"]
 
     def _group(self, op, buf, done) -> list:
         """The fused product [inputs] @ M into the group's buffers V, Y (allocated once per
@@ -367,6 +405,13 @@ class _Stage:
             blk = op.block
             if op.state is None or blk.name in fused:
                 continue
+            if python_block(blk):
+                d = f"dx{self.block_args[id(op)]}"
+                lines += self._python_call(op, "_pyder", buf, ts, [(d, 1)],
+                                           [f"s{u}" for u in op.inputs])
+                lines.append(f"_store({kbuf}, {gen.i(op.state.start)}, "
+                             f"{gen.i(op.state.stop - op.state.start)}, {d}, {gen.i(0)})")
+                continue
             args = self._inputs([f"s{u}" for u in op.inputs], blk.kernels)
             args += self.block_args[id(op)]
             call = (f"{gen.kern(blk.kernels.derivative)}({ts}, {self._xs(buf, op)}"
@@ -414,6 +459,7 @@ class CompiledProgram:
         self.logs, self.t_log, self.consts, self.batch = logs, t_log, consts, batch
         self.I = consts["I"]
         self._sealed = False
+        self.python = None          # fwdstep.python_blocks entry of object-mode blocks
 
     def _first_call_sealed(self) -> None:
         """Seal right after the call that compiled (not only at the end of the run), so
@@ -432,6 +478,7 @@ class CompiledProgram:
         out = self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
                                   *self.logs)
         self._first_call_sealed()
+        self._check_python()
         return out
 
     def run_batch(self, n0: int, n1: int, rows, status, n_next, alive) -> None:
@@ -439,6 +486,12 @@ class CompiledProgram:
         self.module.run_all(n0, n1, rows, status, n_next, alive, *self._fixed(), *self.args,
                             *self.logs)
         self._first_call_sealed()
+        self._check_python()
+
+    def _check_python(self) -> None:
+        """Raise what an object-mode block raised inside the parallel batch loop."""
+        if self.python is not None:
+            self.python.check()
 
     def compile(self) -> None:
         """Compile the run functions now, running no step (numba compiles on first call).
@@ -461,8 +514,10 @@ class CompiledProgram:
         first stage of run_one's loop, stopped after the record (no second copy of it).
         Returns 2 if an unrecorded output is not finite there, else 0."""
         n = int(round(t / self.consts["h"]))
-        return self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args,
-                                   *self.logs)[0]
+        out = self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args,
+                                  *self.logs)[0]
+        self._check_python()
+        return out
 
 
 def build_program(d, n_rows: int) -> CompiledProgram:
@@ -504,11 +559,20 @@ def build_program(d, n_rows: int) -> CompiledProgram:
               "I": np.array(gen.ints + [0], dtype=np.int64)}
     xn, X = np.zeros((B, N)), np.zeros((B, N))
     K = np.zeros((B, S, N))
-    return CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B)
+    prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B)
+    if gen.python:                  # blocks called in object mode: the program's handle
+        from . import python_blocks
+        handle, prog.python = python_blocks.register(prog, gen.python, B)
+        args[[n for n, _ in gen.args].index(st.handle)][0] = handle
+    return prog
 
 
 _HELPERS = ("_pick", "_put0", "_put1", "_put2", "_putn", "_vecmat_into", "_view0", "_view1",
             "_view2", "_viewn", "_zeros", "_copy", "_store", "_rec", "_finite")
+
+
+_PYTHON_HEADER = ("from numba import objmode as _objmode",
+                  "from fwdstep.python_blocks import output as _pyout, derivative as _pyder")
 
 
 def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> str:
@@ -525,7 +589,7 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
            "import math", "import numpy as np", "from numba import njit, prange",
            "from fwdstep.backend_numba import kernel as _kernel",
            *[f"{h} = _kernel('fwdstep.backend_numba', {h!r})" for h in _HELPERS],
-           *gen.imports, "CACHE = True", "", ""]
+           *gen.imports, *_PYTHON_HEADER * bool(gen.python), "CACHE = True", "", ""]
 
     def fn(header, body, decorator="@njit(cache=CACHE)"):
         out.append(decorator)

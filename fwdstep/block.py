@@ -32,8 +32,10 @@ where ``p_i`` are the arrays ``self.p.<name>`` named in ``params`` (leading batc
 subset of NumPy that numba compiles (plus ``math`` and the batched helpers of
 ``fwdstep.kernelops``).  The NumPy path calls them as they are (``Block.output`` /
 ``Block.derivative`` below do); the compiled backend jits the very same functions and calls
-them from one generated loop.  A block that cannot run compiled (it calls a library numba
-cannot compile) says why in ``cannot_compile``; the compiled backend then refuses it by name.
+them from one generated loop.  A block whose numerics call a Python library numba cannot
+compile (pinocchio) sets ``compile_with = "objmode"``: the compiled loop then calls its
+ordinary ``output``/``derivative`` through numba's object mode.  A block that cannot run
+compiled at all says why in ``cannot_compile``; the compiled backend then refuses it by name.
 """
 from __future__ import annotations
 
@@ -129,6 +131,11 @@ class Block:
     #: non-empty: why this block cannot run on the compiled backend (which then refuses the
     #: diagram with this reason and the block's name); empty: it must declare kernels
     cannot_compile: ClassVar[str] = ""
+    #: how the compiled backend runs this block: "numba" (default) jits its kernels;
+    #: "objmode" calls its ``output``/``derivative`` methods as they are (the NumPy path's
+    #: code, e.g. a kernel calling pinocchio) from the compiled loop through numba's object
+    #: mode, one variant per call, at the cost of a Python call (docs/writing-blocks.md)
+    compile_with: ClassVar[str] = "numba"
     #: set by ``set_kernels``: (output kernel, derivative kernel, param names, static values)
     kernels: "Kernels | None" = None
 
