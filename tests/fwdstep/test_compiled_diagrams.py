@@ -35,9 +35,8 @@ REFUSED = {
     # instant (left limit inside the step, right limit after), which the generated loop
     # does not do yet
     "WhiteNoise": "does not yet handle discontinuity times",
-    # pinocchio's C++ dynamics, which numba cannot call
-    "URDFArm": "calls pinocchio",
-    "URDFRegressor": "calls pinocchio",
+    # (URDFArm and URDFRegressor, which call pinocchio, run compiled in numba's object mode:
+    # compile_with = "objmode", tests/fwdstep/test_python_blocks.py)
 }
 
 
