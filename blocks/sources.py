@@ -65,6 +65,14 @@ def sinusoid_output(t, x, frequency, phase, coef_sin, coef_cos, offset_full):
     return y.reshape((y.shape[0], y.shape[1] * y.shape[2]))
 
 
+def sinusoid1_output(t, x, frequency, phase, coef_sin, coef_cos, offset):
+    """The same with one sinusoid per channel (K = 1), every array packed as the output is,
+    (B, (m+1) N): y = coef_sin sin(w t + phi) + coef_cos cos(w t + phi) + offset, in the
+    order of operations of ``sinusoid_output`` (same numbers), without its reshapes."""
+    arg = frequency * t + phase
+    return coef_sin * np.sin(arg) + coef_cos * np.cos(arg) + offset
+
+
 def polynomial_output(t, x, coef):
     """Packed [y, y', ..., y^(m)]: y^(j)_i = sum_k coef[j, i, k] t^k (coef (B, m+1, n, d+1),
     the falling factorials of the derivatives folded in)."""
@@ -185,8 +193,19 @@ class _SinusoidSum(Block):
         shape = () if scalar else (n_channels,)
         for name in _derivative_names(m):
             self.declare_output(name, shape, feedthrough=())
-        self.set_kernels(output=sinusoid_output, packed=True,
-                         params=("frequency", "phase", "coef_sin", "coef_cos", "offset_full"))
+        if n_terms > 1:
+            self.set_kernels(output=sinusoid_output, packed=True, params=(
+                "frequency", "phase", "coef_sin", "coef_cos", "offset_full"))
+            return
+        # one sinusoid per channel: the same coefficients packed as the output is, (m+1) N
+        p = self.p
+        for key, value in (("frequency", p.frequency[0, :, 0]), ("phase", p.phase[0, :, 0])):
+            self.set_param(f"packed_{key}", np.tile(value, m + 1))
+        for key in ("coef_sin", "coef_cos", "offset_full"):
+            self.set_param(f"packed_{key}", getattr(p, key)[0].ravel())
+        self.set_kernels(output=sinusoid1_output, packed=True, params=(
+            "packed_frequency", "packed_phase", "packed_coef_sin", "packed_coef_cos",
+            "packed_offset_full"))
 
 
 def _per_channel(block: Block, key: str, value) -> np.ndarray:
