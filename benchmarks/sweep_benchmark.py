@@ -108,6 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--batches", type=int, default=8, help="batches for (b)")
+    ap.add_argument("--only", default="a,b", help="which of (a), (b) to run: a, b or a,b")
     args = ap.parse_args(argv)
     text = open(SLOTINE).read()
     fd, path = tempfile.mkstemp(suffix=".yaml", dir=os.path.dirname(SLOTINE))
@@ -137,6 +138,7 @@ def main(argv=None) -> int:
             d.logged = [d.resolve("e.y")]
             return _timed(lambda: simulate(d))[:2]
 
+        parts = set(args.only.split(","))
         probe = sweep(workers=1)
         log = hand(probe)
         e = probe.parts[0]["e"]
@@ -145,7 +147,7 @@ def main(argv=None) -> int:
               f"{len(probe.batches)} batch(es); max |e_sweep - e_hand| = {diff:.2e}")
         walls = {"sweep": [], "hand": []}
         cpus = {"sweep": [], "hand": []}
-        for _ in range(args.repeats):                       # interleaved
+        for _ in range(args.repeats if "a" in parts else 0):                       # interleaved
             w, c, _ = _timed(lambda: sweep(workers=1))
             walls["sweep"].append(w)
             cpus["sweep"].append(c)
@@ -155,33 +157,35 @@ def main(argv=None) -> int:
             w, c = integrate(probe)
             walls.setdefault("integrate", []).append(w)
             cpus.setdefault("integrate", []).append(c)
-        med = {k: float(np.median(v)) for k, v in walls.items()}
-        cmed = {k: float(np.median(v)) for k, v in cpus.items()}
-        print(f"    sweep (load + plan + one batch) / hand batched loop: "
-              f"{med['sweep'] / med['hand']:.2f}x wall, {cmed['sweep'] / cmed['hand']:.2f}x cpu "
-              f"(target <= 1.2)")
-        print(f"    of which integrating the batch (fwdstep.simulate alone) / hand: "
-              f"{med['integrate'] / med['hand']:.2f}x wall, "
-              f"{cmed['integrate'] / cmed['hand']:.2f}x cpu")
-        size = int(np.ceil(args.samples / args.batches))
-        rates, split = {}, []
-        for workers in (1, 2, 1, 2):
-            c0 = os.times()
-            w, _, r = _timed(lambda: sweep(workers=workers, batch_size=size))
-            c1 = os.times()
-            rates.setdefault(workers, []).append(w)
-            if workers == 2:     # CPU seconds of this process (serial) and of the workers
-                split.append((c1.user - c0.user + c1.system - c0.system,
-                              c1.children_user - c0.children_user
-                              + c1.children_system - c0.children_system))
-        one, two = np.median(rates[1]), np.median(rates[2])
-        serial, parallel = np.median([s for s, _ in split]), np.median([p for _, p in split])
-        print(f"(b) {len(r.batches)} batches of <= {size}: 2 workers / 1 worker throughput "
-              f"{one / two:.2f}x (target >= 1.7); load average after: "
-              f"{os.getloadavg()[0]:.2f}")
-        print(f"    with 2 workers: {serial:.2f} s CPU in this process (load, plan, collect), "
-              f"{parallel:.2f} s in the workers: on 2 free cores at most "
-              f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
+        if "a" in parts:
+            med = {k: float(np.median(v)) for k, v in walls.items()}
+            cmed = {k: float(np.median(v)) for k, v in cpus.items()}
+            print(f"    sweep (load + plan + one batch) / hand batched loop: "
+                  f"{med['sweep'] / med['hand']:.2f}x wall, {cmed['sweep'] / cmed['hand']:.2f}x cpu "
+                  f"(target <= 1.2)")
+            print(f"    of which integrating the batch (fwdstep.simulate alone) / hand: "
+                  f"{med['integrate'] / med['hand']:.2f}x wall, "
+                  f"{cmed['integrate'] / cmed['hand']:.2f}x cpu")
+        if "b" in parts:
+            size = int(np.ceil(args.samples / args.batches))
+            rates, split = {}, []
+            for workers in (1, 2, 1, 2):
+                c0 = os.times()
+                w, _, r = _timed(lambda: sweep(workers=workers, batch_size=size))
+                c1 = os.times()
+                rates.setdefault(workers, []).append(w)
+                if workers == 2:     # CPU seconds of this process (serial) and of the workers
+                    split.append((c1.user - c0.user + c1.system - c0.system,
+                                  c1.children_user - c0.children_user
+                                  + c1.children_system - c0.children_system))
+            one, two = np.median(rates[1]), np.median(rates[2])
+            serial, parallel = np.median([s for s, _ in split]), np.median([p for _, p in split])
+            print(f"(b) {len(r.batches)} batches of <= {size}: 2 workers / 1 worker throughput "
+                  f"{one / two:.2f}x (target >= 1.7); load average after: "
+                  f"{os.getloadavg()[0]:.2f}")
+            print(f"    with 2 workers: {serial:.2f} s CPU in this process (load, plan, collect), "
+                  f"{parallel:.2f} s in the workers: on 2 free cores at most "
+                  f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
     finally:
         os.unlink(path)
     return 0
