@@ -18,9 +18,10 @@ The generated text depends on the diagram's *structure* only (which kernels, how
 wired, the ranks of the signals): every number — parameters, sizes, state offsets — is an
 argument, so a sweep over ell or n compiles once.  It is stored in the compiled-code cache
 (``fwdstep.compiled_cache``: private directory, content-hash checked) under a hash that
-includes the source files of every kernel it calls, so an edited block never reuses stale
-machine code.  The kernels themselves (and the helpers they call) are cached by numba in
-``<cache>/kernels/<key>``, the key hashing the contents of every file they depend on, so a
+includes the digest of every function it compiles (bytecode and frozen globals, as loaded),
+so an edited block never reuses stale machine code.  The kernels themselves (and the
+helpers they call) are cached by numba in ``<cache>/kernels/<key>``, the key hashing the
+digests of every function they depend on, so a
 never-seen structure built from known blocks compiles only its own loop.
 
 Batches (``fwdstep sweep --backend compiled``): ``run_all`` runs the variants with numba's
@@ -30,7 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib
-import inspect
 import math
 import os
 import sys
@@ -47,35 +47,40 @@ from .solvers import TABLEAUX, step_plan
 #: Steps per call of the compiled loop (Ctrl-C and progress are handled between calls).
 CHUNK = 2000
 
-_HERE = os.path.dirname(os.path.abspath(__file__))
-
 
 # ---------------------------------------------------------------------------- kernels
 _jitted: dict = {}
 
 
 def jit_kernel(fn):
-    """The numba dispatcher of kernel ``fn`` and the set of source files it depends on.
+    """The numba dispatcher of kernel ``fn`` and the digests of the code it compiles.
 
     ``fn``'s globals are copied with ``fwdstep.kernelops`` (the module or its functions)
     replaced by ``fwdstep.compiled_ops`` and every other plain Python function replaced by
-    its own jitted version (recursively), so a kernel may call helpers of its module."""
+    its own jitted version (recursively), so a kernel may call helpers of its module.
+
+    The digests (``_function_digest``: "module.qualname sha") are of the functions *in
+    memory* — the bytecode numba compiles and the global values it freezes — not of their
+    files: a file edited after it was imported must not label machine code compiled from
+    the old text as the new text's."""
     key = fn
     if key in _jitted:
         return _jitted[key]
-    files = {inspect.getsourcefile(fn) or fn.__code__.co_filename}
+    files = {_function_digest(fn)}
     g = dict(fn.__globals__)
     for name in _global_names(fn.__code__):
         value = g.get(name)
         if value is kernelops:
             g[name] = _OpsNamespace()
-            files.add(os.path.abspath(compiled_ops.__file__))
+            files |= _ops_digests()
         elif isinstance(value, types.FunctionType):
             if getattr(value, "__module__", "") == kernelops.__name__:
                 value = getattr(compiled_ops, value.__name__).py_func
             sub, sub_files = jit_kernel(value)
             g[name] = sub
             files |= sub_files
+        elif isinstance(getattr(value, "py_func", None), types.FunctionType):
+            files |= _dispatcher_digests(value.py_func)     # a user's own @njit helper
     clone = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__, fn.__closure__)
     clone.__module__ = fn.__module__
     clone.__qualname__ = fn.__qualname__
@@ -107,14 +112,13 @@ _key_folders: dict = {}
 
 def _cache_on_disk(dispatcher, files: set) -> None:
     """Let numba cache ``dispatcher``'s machine code in a private folder of the compiled-code
-    cache keyed by the contents of ``files`` (and the numba and Python versions), so a new
-    structure compiles only its generated loop and an edited kernel never reuses stale code
-    (numba's own key ignores the functions a kernel calls)."""
+    cache keyed by the digests ``files`` of every function it compiles (and the numba and
+    Python versions), so a new structure compiles only its generated loop and an edited
+    kernel never reuses stale code (numba's own key ignores the functions a kernel calls)."""
     import numba
     from numba.core import config
     key = hashlib.sha256("\n".join(
-        [numba.__version__, sys.version] + [f"{os.path.basename(f)} {_file_digest(f)}"
-                                            for f in sorted(files)]).encode()).hexdigest()[:24]
+        [numba.__version__, sys.version] + sorted(files)).encode()).hexdigest()[:24]
     if key not in _key_folders:            # checked once per process (hashes every file)
         _key_folders[key] = compiled_cache.kernel_folder(key)
     folder = _key_folders[key]
@@ -151,12 +155,66 @@ def kernel(module: str, qualname: str):
     return jit_kernel(getattr(mod, qualname))[0]
 
 
-def _file_digest(path: str) -> str:
-    try:
-        with open(path, "rb") as fh:
-            return hashlib.sha256(fh.read()).hexdigest()[:16]
-    except OSError:
-        return "unreadable"
+def _function_digest(fn) -> str:
+    """"module.qualname sha": the SHA-256 of what numba compiles of ``fn`` — its bytecode,
+    constants and names (line numbers excluded: an edited comment changes nothing) and the
+    values of the plain globals it reads, which numba freezes into the machine code."""
+    h = hashlib.sha256()
+    _hash_code(h, fn.__code__)
+    h.update(repr(fn.__defaults__).encode())
+    for name in sorted(_global_names(fn.__code__)):
+        value = fn.__globals__.get(name, _MISSING)
+        if isinstance(value, (types.FunctionType, types.ModuleType)) or hasattr(
+                value, "py_func"):
+            continue                      # functions: their own digests; modules: by name
+        h.update(f"\0{name}=".encode())
+        if isinstance(value, np.ndarray):
+            h.update(f"{value.dtype.str}{value.shape}".encode() + value.tobytes())
+        elif value is _MISSING or isinstance(value, (bool, int, float, complex, str, bytes,
+                                                     tuple, type(None), np.generic)):
+            h.update(repr(value).encode())
+        else:
+            h.update(type(value).__qualname__.encode())
+    return f"{fn.__module__}.{fn.__qualname__} {h.hexdigest()[:16]}"
+
+
+_MISSING = object()
+
+
+def _hash_code(h, code) -> None:
+    h.update(code.co_code)
+    h.update(repr((code.co_names, code.co_varnames, code.co_freevars, code.co_cellvars,
+                   code.co_argcount, code.co_kwonlyargcount, code.co_flags)).encode())
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            _hash_code(h, const)
+        else:
+            h.update(repr(const).encode())
+
+
+def _ops_digests() -> set:
+    """The digests of every numba twin of ``fwdstep.compiled_ops`` (what kernelops is bound to)."""
+    out: set = set()
+    for name in dir(compiled_ops):
+        value = getattr(compiled_ops, name)
+        if hasattr(value, "py_func"):
+            out |= jit_kernel(value.py_func)[1]
+    return out
+
+
+def _dispatcher_digests(fn, seen=None) -> set:
+    """Digests of an already-jitted helper's Python function and the functions it calls."""
+    seen = set() if seen is None else seen
+    if fn in seen:
+        return set()
+    seen.add(fn)
+    out = {_function_digest(fn)}
+    for name in _global_names(fn.__code__):
+        value = fn.__globals__.get(name)
+        value = getattr(value, "py_func", value)
+        if isinstance(value, types.FunctionType):
+            out |= _dispatcher_digests(value, seen)
+    return out
 
 
 def refusal(block) -> str | None:
@@ -580,9 +638,8 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     a_list = "".join(", " + n for n in arg_names + log_names)
     fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I"
     picks = [f"{n} = _pick({n}, v)" for n in arg_names if n.startswith("P")]
-    files = sorted(gen.files | {os.path.join(_HERE, f) for f in
-                                ("backend_numba.py", "compiled_ops.py", "kernelops.py")})
-    digests = [f"# {os.path.basename(f)} {_file_digest(f)}" for f in files]
+    helpers = set().union(*(jit_kernel(globals()[h])[1] for h in _HELPERS), _ops_digests())
+    digests = [f"# {part}" for part in sorted(gen.files | helpers)]
     import numba
     out = ["# fwdstep compiled program (generated; see fwdstep/backend_numba.py)",
            f"# numba {numba.__version__}", *digests,

@@ -174,7 +174,9 @@ class VariantSpecs:
         entries, rebuilt = [], set()
         for k, entry in enumerate(base.blocks):
             if entry.name not in touched and not (self.block_names[entry.name] & affected):
-                entries.append(dataclasses.replace(entry, params=dict(entry.params)))
+                kept = copy.copy(entry)          # dataclasses.replace runs __init__: 5x slower
+                kept.params = dict(entry.params)
+                entries.append(kept)
                 continue
             new = self._build(level, entry.name, paths)
             open_shapes = set(getattr(entry.cls, "shape_from", {}))

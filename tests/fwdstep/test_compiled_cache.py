@@ -121,8 +121,11 @@ def test_sealed_numba_files_are_kept(folder, capfd):
 
 
 def test_an_edited_block_changes_the_cache_key(tmp_path, monkeypatch):
-    """The generated text (hence its hash, the cache key) names the SHA-256 of every kernel's
-    source file: editing a plugin file gives another entry, never stale machine code."""
+    """The generated text (hence its hash, the cache key) names the digest of every kernel
+    as it is in memory, i.e. of the code that is compiled: a plugin file edited after it was
+    loaded keeps its key (the old code still runs), and the edited file, once loaded, gets
+    another one.  Keying by the file on disk labelled machine code of the old text with the
+    new text's key: the next process, loading the edited file, ran the old code."""
     import fwdstep
     from fwdstep import backend_numba
     plugin = tmp_path / "doubler.py"
@@ -161,10 +164,39 @@ class Doubler(Block):
     d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
     backend_numba.build_program(d, 5)
     plugin.write_text(body.replace("FACTOR = 2.0", "FACTOR = 3.0"))
+    backend_numba.build_program(d, 5)              # the loaded code is unchanged
+    assert len(seen) == 2 and seen[0] == seen[1]
+    fwdstep.registry._plugin_files.clear()         # as a new process would: load the new text
+    d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
     backend_numba.build_program(d, 5)
-    assert len(seen) == 2 and seen[0] != seen[1]
-    changed = [a for a, b in zip(seen[0].splitlines(), seen[1].splitlines()) if a != b]
-    assert len(changed) == 1 and changed[0].startswith("# doubler.py ")
+    changed = [a for a, b in zip(seen[0].splitlines(), seen[2].splitlines()) if a != b]
+    assert len(changed) == 1 and ".doubler_output " in changed[0], changed
+
+
+def test_a_kernel_digest_follows_its_code_and_frozen_globals_not_its_comments(tmp_path,
+                                                                              monkeypatch):
+    """numba freezes a kernel's plain globals (numbers, arrays) into the machine code: they
+    are part of the digest; comments and line numbers are not (no needless recompiles)."""
+    import importlib
+    import sys
+    from fwdstep import backend_numba
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)   # same size, same second: no .pyc
+    text = "import numpy as np\n\nC = 2.0\nW = np.array([1.0, 2.0])\n\n\n" \
+           "def kern(x):\n    return C * x + W[0]\n"
+
+    def digest(source):
+        (tmp_path / "h27_kernel.py").write_text(source)
+        sys.modules.pop("h27_kernel", None)
+        importlib.invalidate_caches()
+        fn = importlib.import_module("h27_kernel").kern
+        return backend_numba._function_digest(fn)
+
+    base = digest(text)
+    assert digest("# a comment\n\n" + text) == base
+    assert digest(text.replace("C = 2.0", "C = 3.0")) != base
+    assert digest(text.replace("[1.0, 2.0]", "[1.5, 2.0]")) != base
+    assert digest(text.replace("C * x", "x * C")) != base
 
 
 def test_an_edited_helper_module_never_reuses_a_cached_kernel(folder, tmp_path, monkeypatch):
