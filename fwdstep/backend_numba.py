@@ -512,10 +512,11 @@ def check_compilable(d) -> None:
 class CompiledProgram:
     """The run functions of one diagram (any batch size), with their buffers."""
 
-    def __init__(self, module, args, xn, X, K, logs, t_log, consts, batch):
+    def __init__(self, module, args, xn, X, K, logs, t_log, consts, batch, events):
         self.module, self.args, self.xn, self.X, self.K = module, args, xn, X, K
         self.logs, self.t_log, self.consts, self.batch = logs, t_log, consts, batch
         self.I = consts["I"]
+        self.events = events            # (ev_n, ev_off, ev_t): see event_arrays
         self._sealed = False
         self.python = None          # fwdstep.python_blocks entry of object-mode blocks
 
@@ -529,7 +530,7 @@ class CompiledProgram:
     def _fixed(self):
         c = self.consts
         return (c["h"], c["every"], c["bound"], c["a"], c["c"], c["b"], self.xn, self.X,
-                self.K, self.t_log, self.I)
+                self.K, self.t_log, self.I, c["A"], c["C"], c["B"], *self.events)
 
     def run(self, n0: int, n1: int, row: int) -> tuple:
         """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged, next step, next row)."""
@@ -578,8 +579,10 @@ class CompiledProgram:
         return out
 
 
-def build_program(d, n_rows: int) -> CompiledProgram:
-    """Generate, load (from the cache when possible) and bind the compiled run of ``d``."""
+def build_program(d, n_rows: int, plan=None) -> CompiledProgram:
+    """Generate, load (from the cache when possible) and bind the compiled run of ``d``;
+    ``plan``: its ``fwdstep.events.plan_events`` (None: no declared times), whose split
+    steps the loop runs as the NumPy path does (``event_arrays``)."""
     check_compilable(d)
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
@@ -603,7 +606,7 @@ def build_program(d, n_rows: int) -> CompiledProgram:
     stage_der = st.derivatives("X2", "ts", "K2, stg")
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
-        final = f"({final} + b[{m}] * K2[{j}, i])"
+        final = f"({final} + bw[{m}] * K2[{j}, i])"
     source = _module_source(gen, st, log_names, record, stage_out, stage_der, final)
     module = compiled_cache.load(source)
     args = [v for _, v in gen.args]
@@ -614,15 +617,42 @@ def build_program(d, n_rows: int) -> CompiledProgram:
     consts = {"h": cfg.step, "every": cfg.log_every, "bound": cfg.bound, "a": a,
               "c": np.array([0.0] + [ch for ch, _ in stages]),
               "b": np.array([b for _, b in final_coeffs]),
-              "I": np.array(gen.ints + [0], dtype=np.int64)}
+              "I": np.array(gen.ints + [0], dtype=np.int64),
+              # the tableau itself, for (sub-)steps of another size (times hs in the loop)
+              "A": np.array([list(row) + [0.0] * (S - len(row)) for row in tab.a]),
+              "C": np.array(tab.c, dtype=float),
+              "B": np.array([b for b in tab.b if b != 0.0])}
     xn, X = np.zeros((B, N)), np.zeros((B, N))
     K = np.zeros((B, S, N))
-    prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B)
+    prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B,
+                           event_arrays(plan, cfg.n_steps, cfg.step))
     if gen.python:                  # blocks called in object mode: the program's handle
         from . import python_blocks
         handle, prog.python = python_blocks.register(prog, gen.python, B)
         args[[n for n, _ in gen.args].index(st.handle)][0] = handle
     return prog
+
+
+def event_arrays(plan, n_steps: int, h: float) -> tuple:
+    """``fwdstep.events.plan_events``'s plan as arrays the compiled loop reads: ``ev_n``, the
+    grid steps it splits (ascending), ``ev_off`` (len(ev_n) + 1), and ``ev_t`` rows
+    (a, b, lo, hi): step ``ev_n[p]`` is the sub-steps ``ev_t[ev_off[p]:ev_off[p + 1]]``.
+    An event at t_final adds step n_steps, one row (t_final, t_final, hi of the event, inf):
+    the final record's time is then max(t_final, hi), as on the NumPy path.  Discrete
+    updates are not carried (blocks that declare them are refused: ``cannot_compile``)."""
+    ns, off, rows = [], [0], []
+    if plan is not None:
+        for n in sorted(plan.steps):
+            ns.append(n)
+            rows += [(sub.a, sub.b, sub.lo, sub.hi) for sub in plan.steps[n]]
+            off.append(len(rows))
+        if plan.final is not None:
+            t = n_steps * h
+            ns.append(n_steps)
+            rows.append((t, t, plan.final.hi, math.inf))
+            off.append(len(rows))
+    return (np.array(ns, dtype=np.int64), np.array(off, dtype=np.int64),
+            np.array(rows, dtype=np.float64).reshape(-1, 4))
 
 
 _HELPERS = ("_pick", "_put0", "_put1", "_put2", "_putn", "_vecmat_into", "_view0", "_view1",
@@ -636,7 +666,7 @@ _PYTHON_HEADER = ("from numba import objmode as _objmode",
 def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> str:
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
-    fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I"
+    fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t"
     picks = [f"{n} = _pick({n}, v)" for n in arg_names if n.startswith("P")]
     helpers = set().union(*(jit_kernel(globals()[h])[1] for h in _HELPERS), _ops_digests())
     digests = [f"# {part}" for part in sorted(gen.files | helpers)]
@@ -657,22 +687,42 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     run_body = picks + [line for lines in st.prologue.values() for line in lines] + [
         "N = xn.shape[1]",
         "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]",
+        "AW = np.empty_like(a)", "BW = np.empty_like(b)",
+        "p = np.searchsorted(ev_n, n0)",
         "for n in range(n0, n1):",
         "    t = n * h",
+        # a grid step split at declared discontinuity times (fwdstep.events): sub-steps
+        # q0..q1-1 of ev_t; any other step is one sub-step with the precomputed a, c, b
+        "    q0, q1, split = 0, 1, False",
+        "    if p < ev_n.shape[0] and ev_n[p] == n:",
+        "        q0, q1, split = ev_off[p], ev_off[p + 1], True",
+        "        p += 1",
+        "    ta, hs, lo, hi = t, h, -np.inf, np.inf",
+        "    bad = False",
     ]
+    # a sub-step [ta, ta + hs] runs as fwdstep.program's rest_h: coefficients hs a_ij and
+    # hs b_j, stage times clamped to [lo, hi], stage 1 at max(ta, lo)
+    sub = ["aw, bw = a, b", "if split:",
+           "    ta, hs, lo, hi = ev_t[q, 0], ev_t[q, 1] - ev_t[q, 0], ev_t[q, 2], ev_t[q, 3]",
+           "    for i in range(A.shape[0]):", "        for j in range(A.shape[1]):",
+           "            AW[i, j] = hs * A[i, j]",
+           "    for m in range(B.shape[0]):", "        BW[m] = hs * B[m]",
+           "    aw, bw = AW, BW"]
     # x_i = x_n + sum_j a_ij k_j over the nonzero a_ij, in the NumPy path's order
-    stage = ["ts = t + c[stg]",
+    stage = ["if not split:", "    ts = t + c[stg]",
+             "elif stg == 0:", "    ts = max(ta, lo)",
+             "else:", "    ts = min(max(ta + C[stg] * hs, lo), hi)",
              "for i in range(N):", "    acc = xv[i]", "    for j in range(stg):",
-             "        if a[stg, j] != 0.0:", "            acc = acc + a[stg, j] * K2[j, i]",
+             "        if aw[stg, j] != 0.0:", "            acc = acc + aw[stg, j] * K2[j, i]",
              "    Xv[i] = acc"] + stage_out
-    stage += ["if stg == 0 and (n % every == 0 or final):", "    t_log[row] = t"]
+    stage += ["if stg == 0 and q == q0 and (n % every == 0 or final):", "    t_log[row] = t"]
     stage += ["    " + r for r in record] + ["    row += 1", "    if final:",
                                                 "        return 0, n, row"] + stage_der
-    inner = ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
+    inner = sub + ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
-              "    if not (abs(w) <= bound):", "        bad = True",
-              "if bad:", "    return 1, n + 1, row"]
-    run_body += ["    " + line for line in inner]
+              "    if not (abs(w) <= bound):", "        bad = True"]
+    run_body += ["    for q in range(q0, q1):"] + ["        " + line for line in inner]
+    run_body += ["    if bad:", "        return 1, n + 1, row"]
     run_body.append("return 0, n1, row")
     fn(f"def run_one(v, n0, n1, row, final, {fixed}{a_list}):", run_body)
     fn(f"def run_all(n0, n1, rows, status, n_next, alive, {fixed}{a_list}):",

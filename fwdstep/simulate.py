@@ -354,16 +354,11 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
         raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
                           "backend 'numpy')", file=d.file) from None
     cfg = d.spec.simulation
-    timed = next((st.block for st in d.schedule if len(st.block.discontinuities(cfg.t_final))),
-                 None)
-    if timed is not None:
-        raise ConfigError(f"backend 'compiled' does not yet handle discontinuity times or "
-                          f"discrete blocks (block '{timed.name}', {timed.type_name}); use "
-                          "backend numpy", file=d.file, block=timed.name)
     h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
     wall0 = _time.perf_counter()
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
-    prog = backend_numba.build_program(d, n_rows)
+    events = plan_events(d, h, n_steps)   # the NumPy path's split steps, run in the loop
+    prog = backend_numba.build_program(d, n_rows, events)
     with signals.deferred():                  # a signal during numba's compile is acted on
         prog.compile()                        # after it (raised inside numba's callbacks it
     late = signals.pending()                  # was swallowed and broke the function)
@@ -381,7 +376,8 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
         try:
             if late is not None:
                 raise late
-            x[...] = initial_state(d) if x0 is None else np.asarray(x0, dtype=float)
+            x[...] = (initial_state(d, event=events.start if events is not None else None)
+                      if x0 is None else np.asarray(x0, dtype=float))
             while n < n_steps:
                 n1 = min(n + backend_numba.CHUNK, n_steps)
                 if B == 1:

@@ -31,10 +31,6 @@ STEPS = 40
 
 #: block types the compiled backend refuses, and why (the diagrams holding one are refused)
 REFUSED = {
-    # its output is held over sample intervals: the run must end a step at each sample
-    # instant (left limit inside the step, right limit after), which the generated loop
-    # does not do yet
-    "WhiteNoise": "does not yet handle discontinuity times",
     # (URDFArm and URDFRegressor, which call pinocchio, run compiled in numba's object mode:
     # compile_with = "objmode", tests/fwdstep/test_python_blocks.py)
 }
@@ -80,8 +76,6 @@ def test_compiled_backend_refuses_exactly_the_listed_blocks(path):
     refused = _refused_types(d)
     if not refused:
         backend_numba.check_compilable(d)          # raises if any block is refused
-        assert not any(len(st.block.discontinuities(spec.simulation.t_final))
-                       for st in d.schedule), "a block with event times not in REFUSED"
         return
     with pytest.raises(ConfigError) as info:
         fwdstep.simulate(d, backend="compiled")
@@ -110,3 +104,93 @@ def test_shipped_diagram_on_both_paths(path):
         scale = max(1.0, float(np.nanmax(np.abs(ref[name])))) if np.size(ref[name]) else 1.0
         np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale,
                                    err_msg=name)
+
+
+#: jumps off the step grid (h = 1 ms): a Step at T, pulse edges, noise held over 0.7 ms, into
+#: a saturated second-order loop; the steps they fall in are split (fwdstep.events)
+JUMPS = """
+parameters: {T: 0.0123, A: 1.0, seed: 1}
+blocks:
+  src:   {type: Step, after: A, time: T}
+  i:     {type: Integrator}
+  pulse: {type: Pulse, high: [2.0, -1.0], period: 0.0113, width: 0.0041, delay: 0.0017}
+  w:     {type: WhiteNoise, n: 2, psd: 1.0e-2, sample_time: 0.0007, seed: seed}
+  e:     {type: Sum, signs: "++-", shape: [2]}
+  sat:   {type: Saturation, lower: -0.5, upper: 0.5, shape: [2]}
+  plant: {type: TransferFunction, num: [100], den: [1, 8, 100], shape: [2]}
+connections:
+  - src.y -> i.u
+  - w.y -> e.u1
+  - pulse.y -> e.u2
+  - plant.y -> e.u3
+  - e.y -> sat.u
+  - sat.y -> plant.u
+simulation: {t_final: 0.05, step: 0.001, solver: rk4, log_every: 3}
+metrics: {error: e.y}
+"""
+
+
+def _same(got, ref, column=None):
+    """Every signal of ``got`` within 1e-12 of its scale of ``ref`` (``column``: the
+    variant of the batch ``got`` to compare)."""
+    np.testing.assert_array_equal(got.t, ref.t)
+    assert sorted(got.names) == sorted(ref.names)
+    for name in ref.names:
+        a = got[name] if column is None else got[name][:, column]
+        scale = max(1.0, float(np.nanmax(np.abs(ref[name]))))
+        np.testing.assert_allclose(a, ref[name], rtol=0, atol=1e-12 * scale, err_msg=name)
+
+
+@pytest.fixture
+def jumps(tmp_path):
+    path = tmp_path / "jumps.yaml"
+    path.write_text(JUMPS)
+    return str(path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("T", [0.0123, 0.02, 0.05])      # inside a step, on the grid, t_final
+def test_split_steps_agree_on_both_paths(jumps, T):
+    """Steps split at jumps off the grid, clamped stage times, an event at t_final: the
+    compiled loop runs the NumPy path's step grid (the same numbers), and the integral of
+    the Step is exact, A (t - T) (RK4 integrates each constant piece exactly)."""
+    from fwdstep.events import plan_events
+    d = fwdstep.load_diagram(jumps, {"T": T})
+    plan = plan_events(d, 0.001, 50)
+    assert any(abs(sub.a / 0.001 - round(sub.a / 0.001)) > 1e-6
+               for subs in plan.steps.values() for sub in subs)        # split steps
+    got = fwdstep.simulate(d, backend="compiled")
+    _same(got, fwdstep.simulate(d, backend="numpy"))
+    np.testing.assert_allclose(got["i.y"], np.maximum(got.t - T, 0.0), rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(got["src.y"], np.where(got.t >= T, 1.0, 0.0))
+
+
+@pytest.mark.slow
+def test_batch_with_jumps_equals_one_by_one_compiled_runs(jumps):
+    """A batch (run_all, prange) of variants with other seeds and heights: each variant is
+    its own compiled run; the batch equals the NumPy path's batch."""
+    from fwdstep.compiler import compile_batch
+    values = [{"A": 1.0, "seed": 1}, {"A": -2.0, "seed": 2}, {"A": 0.5, "seed": 7}]
+    d = compile_batch([load_spec(jumps, v) for v in values])
+    batch = fwdstep.simulate(d, backend="compiled")
+    _same(batch, fwdstep.simulate(d, backend="numpy"))
+    for b, v in enumerate(values):
+        _same(batch, fwdstep.simulate(fwdstep.load_diagram(jumps, v), backend="compiled"), b)
+    assert not np.array_equal(batch["w.y"][:, 0], batch["w.y"][:, 1])      # other seeds
+
+
+@pytest.mark.slow
+def test_compiled_sweep_over_jump_times_and_seeds(jumps):
+    """``fwdstep sweep --backend compiled`` over jump times (separate batches: one step
+    grid per batch) and seeds: each variant's recorded signal is its own compiled run."""
+    from fwdstep.sweep import run_sweep
+    result = run_sweep(jumps, grid={"T": [0.0123, 0.05], "seed": [1, 2]}, backend="compiled")
+    assert result.counts() == {"ok": 4} and len(result.batches) == 2
+    recorded = {int(i): (part["t"], part["e"][:, k]) for part in result.parts
+                for k, i in enumerate(part["indices"])}
+    for v in result.variants:
+        alone = fwdstep.simulate(fwdstep.load_diagram(jumps, v.values), backend="compiled")
+        t, e = recorded[v.index]
+        np.testing.assert_array_equal(t, alone.t)
+        np.testing.assert_allclose(e, alone["e.y"], rtol=0, atol=1e-12,
+                                   err_msg=str(v.values))
