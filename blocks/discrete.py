@@ -33,13 +33,14 @@ def held_output(t, x, u, template):
     """y = the held value, the first ``template`` elements of the state, in the port's
     shape (``template`` is a (1, *shape) array of zeros)."""
     size = template.size
-    return (x[:, :size].reshape((x.shape[0],) + template.shape[1:]),)
+    return (np.ascontiguousarray(x[:, :size]).reshape((x.shape[0],) + template.shape[1:]),)
 
 
 def held_output_tail(t, x, u, template):
     """y = the last ``template.size`` elements of the state, in the port's shape."""
     size = template.size
-    return (x[:, x.shape[1] - size:].reshape((x.shape[0],) + template.shape[1:]),)
+    return (np.ascontiguousarray(x[:, x.shape[1] - size:]).reshape((x.shape[0],)
+                                                                    + template.shape[1:]),)
 
 
 def no_change(t, x, u, template):
@@ -61,8 +62,6 @@ class _Sampled(Block):
     """Shared: the sampling parameters and the sample instants."""
 
     discrete = True
-    cannot_compile = ("its state changes at sample instants, between steps, which the "
-                      "compiled backend does not do yet")
 
     def _sampling(self, period: float, offset: float) -> None:
         if not period > 0:

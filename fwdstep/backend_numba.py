@@ -516,7 +516,8 @@ class CompiledProgram:
         self.module, self.args, self.xn, self.X, self.K = module, args, xn, X, K
         self.logs, self.t_log, self.consts, self.batch = logs, t_log, consts, batch
         self.I = consts["I"]
-        self.events = events            # (ev_n, ev_off, ev_t): see event_arrays
+        # (ev_n, ev_off, ev_t, ev_r) and the Event of each row of ev_t: see event_arrays
+        self.events, self.row_events = events
         self._sealed = False
         self.python = None          # fwdstep.python_blocks entry of object-mode blocks
 
@@ -533,7 +534,8 @@ class CompiledProgram:
                 self.K, self.t_log, self.I, c["A"], c["C"], c["B"], *self.events)
 
     def run(self, n0: int, n1: int, row: int) -> tuple:
-        """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged, next step, next row)."""
+        """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged / 2 an output not finite /
+        3 paused for discrete updates (``event_arrays``), next step, next row)."""
         out = self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
                                   *self.logs)
         self._first_call_sealed()
@@ -625,7 +627,7 @@ def build_program(d, n_rows: int, plan=None) -> CompiledProgram:
     xn, X = np.zeros((B, N)), np.zeros((B, N))
     K = np.zeros((B, S, N))
     prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B,
-                           event_arrays(plan, cfg.n_steps, cfg.step))
+                           event_arrays(plan, cfg.n_steps, cfg.step, B))
     if gen.python:                  # blocks called in object mode: the program's handle
         from . import python_blocks
         handle, prog.python = python_blocks.register(prog, gen.python, B)
@@ -633,26 +635,34 @@ def build_program(d, n_rows: int, plan=None) -> CompiledProgram:
     return prog
 
 
-def event_arrays(plan, n_steps: int, h: float) -> tuple:
-    """``fwdstep.events.plan_events``'s plan as arrays the compiled loop reads: ``ev_n``, the
-    grid steps it splits (ascending), ``ev_off`` (len(ev_n) + 1), and ``ev_t`` rows
-    (a, b, lo, hi): step ``ev_n[p]`` is the sub-steps ``ev_t[ev_off[p]:ev_off[p + 1]]``.
-    An event at t_final adds step n_steps, one row (t_final, t_final, hi of the event, inf):
-    the final record's time is then max(t_final, hi), as on the NumPy path.  Discrete
-    updates are not carried (blocks that declare them are refused: ``cannot_compile``)."""
-    ns, off, rows = [], [0], []
+def event_arrays(plan, n_steps: int, h: float, batch: int = 1) -> tuple:
+    """``fwdstep.events.plan_events``'s plan as arrays the compiled loop reads, and the
+    event of each sub-step: ``((ev_n, ev_off, ev_t, ev_r), events)``.  ``ev_n``: the grid
+    steps it splits (ascending); ``ev_off`` (len(ev_n) + 1): step ``ev_n[p]`` is the
+    sub-steps ``ev_t[ev_off[p]:ev_off[p + 1]]``, rows (a, b, lo, hi, update): update = 1
+    when discrete blocks update at a, before the sub-step; the loop then returns status 3
+    with ``ev_r[v]`` = the row, the caller applies ``events[row]``
+    (``fwdstep.events.apply_updates``) and runs on from that step, and the loop resumes at
+    that row.  An event at t_final adds step n_steps, one row (t_final, t_final, hi of the
+    event, inf, 0): the final record's time is then max(t_final, hi), as on the NumPy path
+    (its updates are the caller's, before the final record)."""
+    ns, off, rows, events = [], [0], [], []
     if plan is not None:
         for n in sorted(plan.steps):
             ns.append(n)
-            rows += [(sub.a, sub.b, sub.lo, sub.hi) for sub in plan.steps[n]]
+            for sub in plan.steps[n]:
+                rows.append((sub.a, sub.b, sub.lo, sub.hi, float(sub.event is not None)))
+                events.append(sub.event)
             off.append(len(rows))
         if plan.final is not None:
             t = n_steps * h
             ns.append(n_steps)
-            rows.append((t, t, plan.final.hi, math.inf))
+            rows.append((t, t, plan.final.hi, math.inf, 0.0))
+            events.append(None)
             off.append(len(rows))
-    return (np.array(ns, dtype=np.int64), np.array(off, dtype=np.int64),
-            np.array(rows, dtype=np.float64).reshape(-1, 4))
+    return ((np.array(ns, dtype=np.int64), np.array(off, dtype=np.int64),
+             np.array(rows, dtype=np.float64).reshape(-1, 5),
+             np.full(batch, -1, dtype=np.int64)), events)
 
 
 _HELPERS = ("_pick", "_put0", "_put1", "_put2", "_putn", "_vecmat_into", "_view0", "_view1",
@@ -666,7 +676,7 @@ _PYTHON_HEADER = ("from numba import objmode as _objmode",
 def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> str:
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
-    fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t"
+    fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t, ev_r"
     picks = [f"{n} = _pick({n}, v)" for n in arg_names if n.startswith("P")]
     helpers = set().union(*(jit_kernel(globals()[h])[1] for h in _HELPERS), _ops_digests())
     digests = [f"# {part}" for part in sorted(gen.files | helpers)]
@@ -699,10 +709,16 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
         "        p += 1",
         "    ta, hs, lo, hi = t, h, -np.inf, np.inf",
         "    bad = False",
+        "    qs = q0",                    # resuming at the row whose updates were applied
+        "    if split and ev_r[v] >= q0 and ev_r[v] < q1:",
+        "        qs = ev_r[v]",
     ]
     # a sub-step [ta, ta + hs] runs as fwdstep.program's rest_h: coefficients hs a_ij and
     # hs b_j, stage times clamped to [lo, hi], stage 1 at max(ta, lo)
-    sub = ["aw, bw = a, b", "if split:",
+    sub = ["if split and ev_t[q, 4] != 0.0:",      # discrete updates at ta: the caller's
+           "    if ev_r[v] == q:", "        ev_r[v] = -1",
+           "    else:", "        ev_r[v] = q", "        return 3, n, row",
+           "aw, bw = a, b", "if split:",
            "    ta, hs, lo, hi = ev_t[q, 0], ev_t[q, 1] - ev_t[q, 0], ev_t[q, 2], ev_t[q, 3]",
            "    for i in range(A.shape[0]):", "        for j in range(A.shape[1]):",
            "            AW[i, j] = hs * A[i, j]",
@@ -721,7 +737,7 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     inner = sub + ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
               "    if not (abs(w) <= bound):", "        bad = True"]
-    run_body += ["    for q in range(q0, q1):"] + ["        " + line for line in inner]
+    run_body += ["    for q in range(qs, q1):"] + ["        " + line for line in inner]
     run_body += ["    if bad:", "        return 1, n + 1, row"]
     run_body.append("return 0, n1, row")
     fn(f"def run_one(v, n0, n1, row, final, {fixed}{a_list}):", run_body)

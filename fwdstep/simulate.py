@@ -378,12 +378,20 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                 raise late
             x[...] = (initial_state(d, event=events.start if events is not None else None)
                       if x0 is None else np.asarray(x0, dtype=float))
+            sample = _sampler(d, events, x) if events is not None and events.discrete else None
             while n < n_steps:
                 n1 = min(n + backend_numba.CHUNK, n_steps)
                 if B == 1:
                     codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
                 else:                         # variants in parallel (numba prange)
                     prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
+                paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
+                if paused.any():                  # all alive variants stop at that row
+                    q = int(prog.events[3][np.flatnonzero(paused)[0]])
+                    a, lo = prog.events[2][q, 0], prog.events[2][q, 2]
+                    apply_updates(prog.row_events[q], max(a, lo), x, sample)
+                    codes[paused] = 0
+                    n1 = int(n_next[paused][0])   # go on from that step (and row)
                 newly = (codes != 0) & alive
                 if newly.any():
                     died_at[newly] = n_next[newly] * h     # t + h of the failing step,
@@ -412,6 +420,9 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                     next_report = _time.perf_counter() + 1.0
             else:
                 t = n_steps * h
+                end = events.final if events is not None else None
+                if end is not None and end.updates:   # an event at t_final: its right limit
+                    apply_updates(end, max(t, end.hi), x, sample)
                 for v in np.flatnonzero(alive):
                     if prog.final(t, int(rows[v]), int(v)) == 2:   # an output not finite
                         died_at[v], alive[v], last = t, False, int(v)
@@ -433,6 +444,19 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
                    x, n, t, wall0, reasons)
+
+
+def _sampler(d: CompiledDiagram, events, x):
+    """``evaluate(ts)`` for ``apply_updates`` in a compiled run: the signals discrete blocks
+    read, at (ts, x), from the NumPy path's generated output pass (``program.sample_signals``;
+    updates are rare next to steps)."""
+    numpy_prog = build_program(d, 1, sampled=tuple(events.sampled_signals))
+
+    def evaluate(ts):
+        numpy_prog.xn[...] = x
+        return numpy_prog.sample_signals(ts)
+
+    return evaluate
 
 
 def _compiled_output_failure(d: CompiledDiagram, t: float, x, b: int,

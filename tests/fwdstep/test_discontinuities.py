@@ -143,21 +143,6 @@ def test_events_are_merged_and_snapped_to_the_grid(tmp_path):
     assert abs(1.0 - 0.9999999999999) < SNAP * 0.1 and plan.final is not None
 
 
-def test_compiled_backend_refuses_discrete_blocks_in_one_line(tmp_path):
-    """Declared times run compiled (tests/fwdstep/test_compiled_diagrams.py: the same numbers
-    on both paths); discrete updates between steps do not yet: refused by name, before
-    anything is compiled."""
-    pytest.importorskip("numba")
-    path = tmp_path / "d.yaml"
-    path.write_text(INTEGRAL.format(kind="ZeroOrderHold", params="period: 0.3", solver="rk4")
-                    .replace("blocks:", "blocks:\n  one: {type: Constant, value: 1.0}")
-                    .replace("connections:", "connections:\n  - one.y -> src.u"))
-    with pytest.raises(fwdstep.ConfigError) as err:
-        fwdstep.simulate(fwdstep.load_diagram(str(path)), backend="compiled")
-    assert "backend 'compiled' cannot run block 'src' (ZeroOrderHold)" in str(err.value)
-    assert "\n" not in str(err.value)
-
-
 @pytest.mark.parametrize("times", [[0.1, 0.3, 0.7], [0.05, 0.333, 0.71, 0.9]])
 def test_piecewise_linear_integral_is_exact_and_values_interpolate(tmp_path, times):
     """A ramp's kinks are declared: RK4 integrates each linear piece exactly, on the grid
