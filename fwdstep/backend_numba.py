@@ -26,6 +26,11 @@ never-seen structure built from known blocks compiles only its own loop.
 
 Batches (``fwdstep sweep --backend compiled``): ``run_all`` runs the variants with numba's
 ``prange`` over the machine's cores, each variant exactly as a single run would be.
+
+Declared discontinuity times: the loop reads the NumPy path's plan (``fwdstep.events``) as
+arrays (``event_arrays``) and runs a split step's sub-steps as ``fwdstep.program``'s
+``rest_h`` does; before a sub-step whose discrete blocks update it returns (status 3) and
+the caller applies ``fwdstep.events.apply_updates`` (docs/discrete-time.md).
 """
 from __future__ import annotations
 

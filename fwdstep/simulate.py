@@ -347,7 +347,9 @@ def _reason(exc) -> str:
 
 
 def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
-    """``simulate`` with the numba backend: the same procedure, run in compiled chunks."""
+    """``simulate`` with the numba backend: the same procedure, run in compiled chunks, on
+    the same step grid (``plan_events``); discrete updates are applied here, between the
+    chunks the loop ends at them (status 3, ``backend_numba.event_arrays``)."""
     try:
         from . import backend_numba
     except ImportError:
