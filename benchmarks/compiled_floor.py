@@ -6,6 +6,10 @@ one run (medians of --repeats, interleaved) against the hand-written NumPy loop:
 * fwdstep compiled path, warm (``simulate(d, backend="compiled")`` after a first run);
 * the floor: the same closed loop as allocation-free numba scalar code (below).
 
+With ``--sweep``: a 256-variant compiled sweep (``fwdstep sweep --backend compiled``: a 16 x
+16 grid of K = k I and Gamma) against 256 runs of the numba scalar floor, CPU and wall
+(the sweep runs its variants on every core; the floor loop on one), target <= 5.
+
 Also the cold start of the compiled path: a fresh process with an empty cache directory
 (``fwdstep run --backend compiled``, CPU time of the child), and a fresh process that finds
 the compiled code in the cache.  Run: ``python benchmarks/compiled_floor.py [--t-final 10]``.
@@ -117,12 +121,77 @@ def cpu_of_child(cmd, env) -> float:
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+def sweep_vs_floor(args) -> int:
+    """256 variants (16 K_D x 16 Gamma) as one compiled sweep and as 256 floor runs."""
+    from fwdstep.sweep import run_sweep
+    spec = load_spec(SLOTINE)
+    sim, p = spec.simulation, spec.parameters
+    arm = next(e for e in spec.blocks if e.name == "arm").params
+    ks, gammas = np.linspace(20.0, 80.0, 16), np.linspace(0.5, 4.0, 16)
+    grid = {"K": [[[k, 0.0], [0.0, k]] for k in ks], "Gamma": [float(g) for g in gammas]}
+    over = {"t_final": args.t_final}
+    run = numba_floor()
+    A, w, c = (np.asarray(p[k], dtype=float) for k in ("A", "w", "c"))
+    n = int(round(args.t_final / sim.step))
+    rows = n // sim.log_every + 1 + (1 if n % sim.log_every else 0)
+
+    def floors():
+        out = []
+        for k in ks:
+            for g in gammas:
+                x = np.concatenate([np.broadcast_to(arm.get("q0", 0.0), (2,)), [0.0, 0.0],
+                                    np.asarray(p["theta0"], dtype=float)])
+                log = np.empty((rows, 2))
+                r = run(x, n, sim.step, sim.log_every, log, float(p["Lambda"]),
+                        k * np.eye(2), g * np.eye(4), A, w, c, hand_loops.A1, hand_loops.A2,
+                        hand_loops.A3, hand_loops.A4)
+                out.append(log[:r])
+        return out
+
+    def sweep():
+        return run_sweep(SLOTINE, grid=grid, overrides=over, backend="compiled")
+
+    floors()
+    sweep()                                            # compile (or load from the cache)
+    times = {"sweep": [], "floor": []}
+    for _ in range(args.repeats):
+        for name, fn in (("sweep", sweep), ("floor", floors)):
+            w0, c0 = time.perf_counter(), time.process_time()
+            out = fn()
+            times[name].append((time.perf_counter() - w0, time.process_time() - c0))
+            if name == "sweep":
+                result = out
+            else:
+                logs = out
+    e = result.parts[0]["e"] if len(result.parts) == 1 else None
+    agree = ""
+    if e is not None:
+        order = [v.values for v in result.variants]
+        diffs = []
+        for j, values in enumerate(order):
+            kk, gg = values["K"][0][0], values["Gamma"]
+            i = int(np.argmin(np.abs(ks - kk))) * 16 + int(np.argmin(np.abs(gammas - gg)))
+            diffs.append(np.max(np.abs(e[:len(logs[i]), j] - logs[i])))
+        agree = f"; max |e_sweep - e_floor| = {max(diffs):.1e}"
+    wall = {k: statistics.median([a for a, _ in v]) for k, v in times.items()}
+    cpu = {k: statistics.median([b for _, b in v]) for k, v in times.items()}
+    print(f"256-variant compiled sweep of Slotine-Li ({args.t_final:g} s, 16 K x 16 Gamma, "
+          f"{len(result.batches)} batch(es), {os.cpu_count()} cpus){agree}")
+    print(f"  sweep / 256 numba floor runs: cpu {cpu['sweep'] / cpu['floor']:.2f}x, wall "
+          f"{wall['sweep'] / wall['floor']:.2f}x (target <= 5)")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--t-final", type=float, default=10.0)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--no-cold", action="store_true", help="skip the fresh-process timings")
+    ap.add_argument("--sweep", action="store_true",
+                    help="only the 256-variant compiled sweep against 256 floor runs")
     args = ap.parse_args(argv)
+    if args.sweep:
+        return sweep_vs_floor(args)
     spec = load_spec(SLOTINE)
     spec.simulation.t_final = args.t_final
     sim, p = spec.simulation, spec.parameters
