@@ -173,10 +173,12 @@ def _function_digest(fn) -> str:
                 value, "py_func"):
             continue                      # functions: their own digests; modules: by name
         h.update(f"\0{name}=".encode())
-        if isinstance(value, np.ndarray):
+        if value is _MISSING:             # a builtin or an attribute name: the name alone
+            h.update(b"?")                # (repr(_MISSING) holds an address: another key in
+        elif isinstance(value, np.ndarray):     # every process, so no cache hit ever)
             h.update(f"{value.dtype.str}{value.shape}".encode() + value.tobytes())
-        elif value is _MISSING or isinstance(value, (bool, int, float, complex, str, bytes,
-                                                     tuple, type(None), np.generic)):
+        elif isinstance(value, (bool, int, float, complex, str, bytes, tuple, type(None),
+                                np.generic)):
             h.update(repr(value).encode())
         else:
             h.update(type(value).__qualname__.encode())
