@@ -31,8 +31,6 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .errors import BlockRuntimeError
-
 _programs: dict = {}
 _handles = itertools.count(1)
 
@@ -45,18 +43,14 @@ class PythonBlocks:
         self.blocks = [[blk] if batch == 1 else [_variant(blk, v) for v in range(batch)]
                        for blk in blocks]
         self.lock = threading.Lock()
-        self.failure = None            # (exception, message, block) of the first failure
+        self.failure = None            # the first failure of a batch call
 
     def check(self) -> None:
         """Raise the failure a batch call recorded (a signal as it came, an error as a
-        ``BlockRuntimeError`` naming block, time and variant)."""
+        ``BlockRuntimeError`` naming block, time, inputs and variant)."""
         failure, self.failure = self.failure, None
-        if failure is None:
-            return
-        exc, message, name = failure
-        if not isinstance(exc, Exception):
-            raise exc                   # KeyboardInterrupt (fwdstep.signals): interrupted
-        raise BlockRuntimeError(message, block=name) from exc
+        if failure is not None:
+            raise failure
 
 
 def register(owner, blocks: list, batch: int) -> tuple:
@@ -92,7 +86,7 @@ def output(handle, j, v, t, x, *u) -> tuple:
             raise ValueError(f"output returned {len(y)} arrays for {len(ports)} outputs")
         return tuple(_signal(blk, port, value, t) for port, value in zip(ports, y))
     except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
-        _failed(entry, blk, exc, t, v)
+        _failed(entry, blk, exc, t, u, v)
         return tuple(np.full((1,) + p.shape, np.nan) for p in ports)
 
 
@@ -109,7 +103,7 @@ def derivative(handle, j, v, t, x, *u) -> np.ndarray:
                      f"derivative has shape {np.shape(dx)[1:]} at t = {t:.6g}, but it "
                      f"declares {blk.n_states} states")
     except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
-        _failed(entry, blk, exc, t, v)
+        _failed(entry, blk, exc, t, u, v)
         return np.full((1, blk.n_states), np.nan)
 
 
@@ -130,12 +124,19 @@ def _copy(value, shape: tuple, message: str) -> np.ndarray:
     return np.array(a, dtype=np.float64, order="C")
 
 
-def _failed(entry, blk, exc, t, v) -> None:
-    """Record the first failure; a single run raises it at once (no parallel region)."""
+def _failed(entry, blk, exc, t, u, v) -> None:
+    """Record the first failure of a batch; a single run raises it at once (no parallel
+    region).  An error becomes the NumPy path's ``BlockRuntimeError`` (block, time, inputs;
+    the variant in a batch), chained to it; a signal (KeyboardInterrupt) stays itself."""
+    error = exc
+    if isinstance(exc, Exception):
+        from .simulate import _block_error          # the NumPy path's message
+        error = _block_error(SimpleNamespace(block=blk), exc, t, u)
+        if entry.batch > 1:
+            error.args = (f"{error} (variant {v})",)
+        error.__cause__ = exc
     if entry.batch == 1:
-        raise exc
+        raise error
     with entry.lock:
         if entry.failure is None:
-            entry.failure = (exc, f"block '{blk.name}' ({blk.type_name}) raised "
-                                  f"{type(exc).__name__}: {exc} at t = {t:.6g} (variant {v})",
-                             blk.name)
+            entry.failure = error

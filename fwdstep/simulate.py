@@ -439,6 +439,8 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
             status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
             error = SimulationInterrupted(message, time=t)
             error.signum = getattr(exc, "signum", 2)
+        except SimulationError as exc:    # an object-mode block's error: already says where
+            status, message, error = "error", str(exc), exc
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
             error = _locate_failure(d, t, x.copy(), exc)
             error.__cause__ = exc
