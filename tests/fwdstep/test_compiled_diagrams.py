@@ -232,6 +232,9 @@ def test_discrete_blocks_agree_on_both_paths(tmp_path):
     got = fwdstep.simulate(d, backend="compiled")
     _same(got, fwdstep.simulate(d, backend="numpy"))
     k = np.searchsorted(got.t, 0.0011 + 0.0037)          # held between samples
+    last = {"t0": 0.0021, "simulation.t_final": 0.028}     # a sample at t_final: recorded
+    _same(fwdstep.simulate(fwdstep.load_diagram(str(path), last), backend="compiled"),
+          fwdstep.simulate(fwdstep.load_diagram(str(path), last), backend="numpy"))
     assert got["dly.y"][k - 1, 0] == 0.0 and got["dly.y"][k + 1, 0] != 0.0
     values = [{"a": 0.9}, {"a": 0.5}, {"a": -0.3}]
     batch = fwdstep.simulate(compile_batch([load_spec(str(path), v) for v in values]),
@@ -239,3 +242,24 @@ def test_discrete_blocks_agree_on_both_paths(tmp_path):
     for b, v in enumerate(values):
         _same(batch, fwdstep.simulate(fwdstep.load_diagram(str(path), v), backend="compiled"),
               b)
+
+
+def test_event_arrays_are_the_numpy_paths_plan(tmp_path):
+    """No compiling: the rows the compiled loop reads are plan_events' sub-steps, in order,
+    with the discrete updates flagged, and an event at t_final gives the final record its
+    right limit."""
+    from fwdstep import backend_numba
+    from fwdstep.events import plan_events
+    path = tmp_path / "sampled.yaml"
+    path.write_text(SAMPLED.replace("t0: 0.0011", "t0: 0.0021"))   # 0.0021 + 7 T = 0.028
+    d = fwdstep.load_diagram(str(path), {"simulation.t_final": 0.028})
+    plan = plan_events(d, 0.001, 28)
+    (ev_n, ev_off, ev_t, ev_r), events = backend_numba.event_arrays(plan, 28, 0.001, 3)
+    subs = [s for n in sorted(plan.steps) for s in plan.steps[n]]
+    assert ev_n.tolist() == sorted(plan.steps) + [28] and ev_off[-1] == len(subs) + 1
+    assert [tuple(r) for r in ev_t[:-1]] == [(s.a, s.b, s.lo, s.hi, float(s.event is not None))
+                                             for s in subs]
+    assert events[:-1] == [s.event for s in subs] and sum(e is not None for e in events) == 7
+    assert plan.final.updates and ev_t[-1, 4] == 0       # applied by the caller
+    assert ev_t[-1, 0] == 28 * 0.001 and ev_t[-1, 2] == plan.final.hi
+    assert ev_r.tolist() == [-1, -1, -1]
