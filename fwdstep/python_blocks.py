@@ -31,6 +31,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from .errors import BlockRuntimeError
+
 _programs: dict = {}
 _handles = itertools.count(1)
 
@@ -42,6 +44,8 @@ class PythonBlocks:
         self.batch = batch
         self.blocks = [[blk] if batch == 1 else [_variant(blk, v) for v in range(batch)]
                        for blk in blocks]
+        self.ports = [[(p.name, (1,) + p.shape) for p in blk.outputs.values()]
+                      for blk in blocks]
         self.lock = threading.Lock()
         self.failure = None            # the first failure of a batch call
 
@@ -76,52 +80,59 @@ def output(handle, j, v, t, x, *u) -> tuple:
     """Block j's outputs for variant v, one C-contiguous float64 array (1, *shape) each."""
     entry = _programs[handle]
     blk = entry.blocks[j][v if entry.batch > 1 else 0]
-    ports = list(blk.outputs.values())
-    if entry.failure is not None:
-        return tuple(np.full((1,) + p.shape, np.nan) for p in ports)
-    try:
-        with entry.lock:
-            y = blk.output(t, x, u)
-        if len(y) != len(ports):
-            raise ValueError(f"output returned {len(y)} arrays for {len(ports)} outputs")
-        return tuple(_signal(blk, port, value, t) for port, value in zip(ports, y))
-    except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
-        _failed(entry, blk, exc, t, u, v)
-        return tuple(np.full((1,) + p.shape, np.nan) for p in ports)
+    ports = entry.ports[j]
+    if entry.failure is None:
+        try:
+            with entry.lock:
+                y = blk.output(t, x, u)
+            if len(y) != len(ports):
+                raise _Mismatch(f"block '{blk.name}' ({blk.type_name}) returned {len(y)} "
+                                f"outputs at t = {t:.6g}, but declares {len(ports)}")
+            out = []
+            for (name, shape), value in zip(ports, y):
+                try:
+                    out.append(_copy(value, shape))
+                except ValueError:
+                    raise _Mismatch(f"block '{blk.name}' ({blk.type_name}) output '{name}' "
+                                    f"has shape {np.shape(value)[1:]} at t = {t:.6g}, but "
+                                    f"declares {shape[1:]}") from None
+            return tuple(out)
+        except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
+            _failed(entry, blk, exc, t, u, v)
+    return tuple(np.full(shape, np.nan) for _, shape in ports)
 
 
 def derivative(handle, j, v, t, x, *u) -> np.ndarray:
     """Block j's state derivative for variant v, a C-contiguous float64 array (1, n)."""
     entry = _programs[handle]
     blk = entry.blocks[j][v if entry.batch > 1 else 0]
-    if entry.failure is not None:
-        return np.full((1, blk.n_states), np.nan)
-    try:
-        with entry.lock:
-            dx = blk.derivative(t, x, u)
-        return _copy(dx, (1, blk.n_states), f"block '{blk.name}' ({blk.type_name}): its "
-                     f"derivative has shape {np.shape(dx)[1:]} at t = {t:.6g}, but it "
-                     f"declares {blk.n_states} states")
-    except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
-        _failed(entry, blk, exc, t, u, v)
-        return np.full((1, blk.n_states), np.nan)
+    shape = (1, blk.n_states)
+    if entry.failure is None:
+        try:
+            with entry.lock:
+                dx = blk.derivative(t, x, u)
+            try:
+                return _copy(dx, shape)
+            except ValueError:
+                raise _Mismatch(f"block '{blk.name}' ({blk.type_name}) derivative has shape "
+                                f"{np.shape(dx)[1:]} at t = {t:.6g}, but the block declares "
+                                f"{blk.n_states} states") from None
+        except BaseException as exc:  # noqa: BLE001 - recorded, raised after the batch call
+            _failed(entry, blk, exc, t, u, v)
+    return np.full(shape, np.nan)
 
 
-def _signal(blk, port, value, t) -> np.ndarray:
-    return _copy(value, (1,) + port.shape,
-                 f"block '{blk.name}' ({blk.type_name}) output '{port.name}' has shape "
-                 f"{np.shape(value)[1:]} at t = {t:.6g}, but declares {port.shape}")
+class _Mismatch(Exception):
+    """A result whose shape is not the declared one (reported as it is, not as raised)."""
 
 
-def _copy(value, shape: tuple, message: str) -> np.ndarray:
+def _copy(value, shape: tuple) -> np.ndarray:
     """``value`` (broadcast to ``shape``) as a new C-contiguous float64 array: never a view
-    of the loop's buffers or of the block's own arrays."""
-    a = np.asarray(value, dtype=np.float64)
-    try:
-        a = np.broadcast_to(a, shape)
-    except ValueError:
-        raise ValueError(message) from None
-    return np.array(a, dtype=np.float64, order="C")
+    of the loop's buffers or of the block's own arrays.  ValueError if it does not fit."""
+    if type(value) is np.ndarray and value.shape == shape and value.dtype == np.float64:
+        return value.copy()         # the usual case, without broadcast_to's ~5 us
+    return np.array(np.broadcast_to(np.asarray(value, dtype=np.float64), shape),
+                    dtype=np.float64, order="C")
 
 
 def _failed(entry, blk, exc, t, u, v) -> None:
@@ -129,12 +140,15 @@ def _failed(entry, blk, exc, t, u, v) -> None:
     region).  An error becomes the NumPy path's ``BlockRuntimeError`` (block, time, inputs;
     the variant in a batch), chained to it; a signal (KeyboardInterrupt) stays itself."""
     error = exc
-    if isinstance(exc, Exception):
+    if isinstance(exc, _Mismatch):
+        error = BlockRuntimeError(str(exc), time=t, block=blk.name)
+    elif isinstance(exc, Exception):
         from .simulate import _block_error          # the NumPy path's message
         error = _block_error(SimpleNamespace(block=blk), exc, t, u)
+    if error is not exc:
         if entry.batch > 1:
             error.args = (f"{error} (variant {v})",)
-        error.__cause__ = exc
+        error.__cause__ = None if isinstance(exc, _Mismatch) else exc
     if entry.batch == 1:
         raise error
     with entry.lock:
