@@ -207,3 +207,25 @@ def test_a_sweep_over_ell_generates_one_program(monkeypatch):
         d = fwdstep.load_diagram(os.path.join(root, "diagrams", "theorem1.yaml"), {"ell": ell})
         backend_numba.build_program(d, 5)
     assert len(seen) == 10 and len(set(seen)) == 1
+
+
+def test_a_batch_compiles_the_kernels_of_one_variant_and_restores_the_batch_ones():
+    """run_one runs each variant alone: a block that picks vectorised kernels for a batch
+    (TwoLinkArm, Regressor: finalize(batch)) is compiled with its one-variant kernels, which
+    numba turns into scalar code (the vectorised ones allocate an array per operation); the
+    NumPy path of the same diagram keeps its batch kernels.  No compiling here."""
+    from fwdstep import backend_numba
+    from fwdstep.blocks import robot
+    from fwdstep.compiler import compile_batch
+    from fwdstep.spec import load_spec
+    path = os.path.join(os.path.dirname(__file__), "..", "..", "diagrams", "slotine_li.yaml")
+    d = compile_batch([load_spec(path, {"Lambda": lam}) for lam in (2.0, 5.0, 8.0)])
+    arm = next(st.block for st in d.schedule if st.block.name == "arm")
+    Y = next(st.block for st in d.schedule if st.block.name == "Y")
+    assert arm.kernels.derivative is robot.two_link_derivative_batch
+    assert Y.kernels.output is robot.regressor_output_batch
+    with backend_numba._per_variant_kernels(d):
+        assert arm.kernels.derivative is robot.two_link_derivative
+        assert Y.kernels.output is robot.regressor_output
+    assert arm.kernels.derivative is robot.two_link_derivative_batch
+    assert Y.kernels.output is robot.regressor_output_batch
