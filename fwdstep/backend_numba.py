@@ -515,6 +515,17 @@ def check_compilable(d) -> None:
             raise ConfigError(f"backend 'compiled' cannot run block '{blk.name}' "
                               f"({blk.type_name}): {reason}; use --backend numpy",
                               file=d.file)
+    # a linear block without kernels runs only fused: refused when too large to fuse (its
+    # dense matrices would exceed fwdstep.linear.MAX_FUSED_ELEMENTS)
+    ops, _ = _ops_for(d.schedule, [tuple(s) for s in d.signal_shapes], d.constant_signals)
+    for kind, op, _ in ops:
+        blk = op.block if kind == "call" else None
+        if blk is not None and not python_block(blk) and (blk.kernels is None or (
+                blk.kernels.output is None and blk.outputs)):
+            raise ConfigError(f"backend 'compiled' cannot run block '{blk.name}' "
+                              f"({blk.type_name}): it declares no kernels and its linear form "
+                              f"is too large to fuse ({blk.n_states} states); use --backend "
+                              "numpy", file=d.file)
 
 
 # ---------------------------------------------------------------------------- the program
