@@ -3,6 +3,7 @@ fwdstep against a hand-written RK4 loop that calls pinocchio directly for the sa
 
     python benchmarks/robots_benchmark.py               # 3 interleaved repeats of each
     python benchmarks/robots_benchmark.py --repeats 5 --t-final 2
+    python benchmarks/robots_benchmark.py --compiled --diagram diagrams/robots/panda_theorem3.yaml
 
 The hand loop integrates, with the diagram's numbers,
 
@@ -14,6 +15,12 @@ in one flat state vector, and its final tracking error is compared with the diag
 that both integrate the same closed loop.  Both sides record every 10th step.  Repeats are
 interleaved (A, B, A, B, ...) so that a busy machine slows both alike; the ratio is of medians
 of wall times measured in this one run.  Target (issue 12): fwdstep <= 2x the hand loop.
+
+``--compiled`` also times ``--backend compiled`` (numba; URDFArm and URDFRegressor are called
+from the compiled loop in object mode, fwdstep/python_blocks.py), interleaved with the others,
+after one untimed short run that compiles (or loads) the structure, and prints its ratio to
+the NumPy path.  ``--diagram`` picks another robot diagram (the hand loop is Theorem 1's only:
+it is skipped for any other).
 """
 from __future__ import annotations
 
@@ -91,25 +98,52 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats of each")
     parser.add_argument("--t-final", type=float, default=10.0, help="simulated time (s)")
+    parser.add_argument("--diagram", default=DIAGRAM, help="robot diagram (default: "
+                        "panda_theorem1.yaml; the hand loop runs for that one only)")
+    parser.add_argument("--compiled", action="store_true",
+                        help="also time --backend compiled (pinocchio blocks in object mode)")
     args = parser.parse_args(argv)
 
     import fwdstep
-    d = fwdstep.load_diagram(DIAGRAM, overrides={"t_final": args.t_final})
+    d = fwdstep.load_diagram(args.diagram, overrides={"t_final": args.t_final})
     step, log_every = d.spec.simulation.step, d.spec.simulation.log_every
-    print(f"Panda Theorem 1 (ell = 2), {args.t_final:g} s at step {step:g}, rk4, "
-          f"{d.n_states} states; {args.repeats} interleaved repeats")
-    wall_f, wall_h = [], []
+    hand = os.path.samefile(args.diagram, DIAGRAM)
+    print(f"{os.path.basename(args.diagram)}, {args.t_final:g} s at step {step:g}, "
+          f"{d.spec.simulation.solver}, {d.n_states} states; {args.repeats} interleaved repeats")
+    wall_f, wall_h, wall_c = [], [], []
+    if args.compiled:
+        t0 = time.perf_counter()
+        fwdstep.simulate(fwdstep.load_diagram(args.diagram, overrides={"t_final": 10 * step}),
+                         backend="compiled")
+        print(f"compile (or load from the cache) and a 10-step run: "
+              f"{time.perf_counter() - t0:.1f} s (not in the ratios)")
     for _ in range(args.repeats):
         t0 = time.perf_counter()
         result = fwdstep.simulate(d)
         wall_f.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        _, e_hand = hand_loop(d, args.t_final, step, log_every)
-        wall_h.append(time.perf_counter() - t0)
+        if args.compiled:
+            t0 = time.perf_counter()
+            compiled = fwdstep.simulate(d, backend="compiled")
+            wall_c.append(time.perf_counter() - t0)
+        if hand:
+            t0 = time.perf_counter()
+            _, e_hand = hand_loop(d, args.t_final, step, log_every)
+            wall_h.append(time.perf_counter() - t0)
+    med_f = statistics.median(wall_f)
+    print(f"fwdstep simulate : median {med_f:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_f)})")
+    if args.compiled:
+        med_c = statistics.median(wall_c)
+        worst = max(float(np.nanmax(np.abs(compiled[n] - result[n]))
+                          / max(1.0, float(np.nanmax(np.abs(result[n]))))) for n in result.names)
+        print(f"fwdstep compiled : median {med_c:.2f} s  "
+              f"({', '.join(f'{w:.2f}' for w in wall_c)})")
+        print(f"ratio compiled / NumPy path = {med_c / med_f:.2f}; largest difference of a "
+              f"logged signal {worst:.1e} of its scale")
+    if not hand:
+        return 0
     e_diagram = result["e.y"][-1]
     agreement = float(np.abs(e_diagram - e_hand).max())
-    med_f, med_h = statistics.median(wall_f), statistics.median(wall_h)
-    print(f"fwdstep simulate : median {med_f:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_f)})")
+    med_h = statistics.median(wall_h)
     print(f"hand pinocchio   : median {med_h:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_h)})")
     print(f"ratio fwdstep / hand = {med_f / med_h:.2f}  (target <= 2)")
     print(f"final |Delta q| (largest joint): diagram {np.abs(e_diagram).max():.3e}, hand "
