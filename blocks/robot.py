@@ -188,9 +188,16 @@ def two_link_derivative_batch(t, x, tau, tau_star, theta, gravity):
     c1 = c12 = s12 = q2                     # the cosines of q1, q1 + q2 only with gravity
     if gravity:
         c1, c12, s12 = np.cos(q1), np.cos(q1 + q2), np.sin(q1 + q2)
-    dd1, dd2 = two_link_accel(theta[:, 0], theta[:, 1], theta[:, 2], theta[:, 3], theta[:, 4],
-                              theta[:, 5], theta[:, 6], gravity, c1, np.cos(q2), np.sin(q2),
-                              c12, s12, x[:, 2], x[:, 3], torque[:, 0], torque[:, 1])
+    c2, s2 = np.cos(q2), np.sin(q2)
+    if theta.shape[0] == 1:                 # shared: numbers (an operation of a number with
+        th = theta[0]                       # an array costs half that of a 1-element array)
+        dd1, dd2 = two_link_accel(th[0], th[1], th[2], th[3], th[4], th[5], th[6], gravity,
+                                  c1, c2, s2, c12, s12, x[:, 2], x[:, 3], torque[:, 0],
+                                  torque[:, 1])
+    else:
+        dd1, dd2 = two_link_accel(theta[:, 0], theta[:, 1], theta[:, 2], theta[:, 3],
+                                  theta[:, 4], theta[:, 5], theta[:, 6], gravity, c1, c2, s2,
+                                  c12, s12, x[:, 2], x[:, 3], torque[:, 0], torque[:, 1])
     B = max(x.shape[0], dd1.shape[0])
     dx = np.empty((B, 4))
     dx[:, 0] = x[:, 2]

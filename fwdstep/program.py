@@ -24,6 +24,7 @@ exactly once per stage, derivatives after all outputs, logging at stage 1.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,6 +179,24 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
         return (getattr(type(block), method) is getattr(Block, method) and k is not None
                 and method not in block.__dict__ and getattr(k, method) is not None)
 
+    cells: dict = {}
+
+    def time_only(block) -> bool:
+        """No inputs, no states: the outputs are a function of t alone (kernels are pure)."""
+        return not block.inputs and not block.n_states
+
+    def memo(block, target: str, call: str) -> list:
+        """``target = call``, reusing the last value when the stage time has not changed
+        (RK4's stages 2 and 3 share t + h/2): a time-only block is evaluated twice per
+        step instead of four times, with the same numbers."""
+        if not time_only(block):
+            return [f"{target} = {call}"]
+        if id(block) not in cells:            # one cell per block: every stage function
+            cells[id(block)] = src.const("memo", [math.nan, None])
+        cell = cells[id(block)]
+        return [f"if {cell}[0] != ts:", f"    {cell}[1] = {call}", f"    {cell}[0] = ts",
+                f"{target} = {cell}[1]"]
+
     def output_pass(buffer) -> list:
         lines = []
         for kind, op in ops:
@@ -188,8 +207,8 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 continue
             blk = op.block
             if direct(blk, "output") and blk.kernels.packed:
-                lines.append("r = " + kernel_call(blk, blk.kernels.output,
-                                                  state_view(buffer, op.state), op.inputs))
+                lines.extend(memo(blk, "r", kernel_call(blk, blk.kernels.output, state_view(
+                    buffer, op.state), op.inputs)))
                 for idx, (a, b, shape) in zip(op.outputs, blk._unpack):
                     lines.append(f"{name[idx]} = r[:, {a}:{b}]" if shape is None else
                                  f"{name[idx]} = r[:, {a}:{b}].reshape((r.shape[0],) + "
@@ -202,9 +221,12 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             else:
                 call = (f"{src.const('out', blk.output)}(ts, {state_view(buffer, op.state)}, "
                         f"{args(op.inputs)})")
+            if time_only(blk) and direct(blk, "output"):
+                lines.extend(memo(blk, "r", call))
+                call = "r"
             if len(op.outputs) == 1:
                 lines.append(f"{name[op.outputs[0]]} = {call}[0]")
-            else:
+            elif call != "r":
                 lines.append(f"r = {call}")
                 lines.extend(f"{name[idx]} = r[{k}]" for k, idx in enumerate(op.outputs))
             lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)

@@ -264,3 +264,21 @@ def test_shipped_diagrams_without_events_run_the_plain_procedure(name):
     np.testing.assert_array_equal(r.t, t_ref)
     for sig in d.logged:
         np.testing.assert_array_equal(r[sig], ref[sig][:, 0], err_msg=sig)
+
+
+def test_a_time_only_block_is_evaluated_once_per_stage_time(loop):
+    """The Sine has no inputs and no states: RK4's stages 2 and 3 share t + h/2, so the
+    program reuses its outputs there (the numbers are those of the reference stepper, bit
+    for bit: test above); the plant, which has a state, is evaluated at every stage."""
+    import dataclasses
+    d = fwdstep.load_diagram(loop)
+    calls = {"qd": [], "arm": []}
+    for st in d.schedule:
+        if st.block.name in calls:
+            k, seen = st.block.kernels, calls[st.block.name]
+            st.block.kernels = dataclasses.replace(
+                k, output=lambda t, *a, _f=k.output, _s=seen: _s.append(t) or _f(t, *a))
+    fwdstep.simulate(d)
+    n = d.spec.simulation.n_steps
+    assert len(calls["arm"]) >= 4 * n                     # every stage
+    assert 2 * n < len(calls["qd"]) <= 3 * n + 3          # stages 1, 2 and 4 (and the start)
