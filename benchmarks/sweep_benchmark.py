@@ -96,6 +96,34 @@ def batched_slotine_li(t_final, h, log_every, Lambda, K, Gamma, theta0, A, w, c,
     return log
 
 
+class _Chunk:
+    def __init__(self, variants):
+        self.variants = variants
+
+
+def _hand_batch(job):
+    hand, chunk = job
+    return hand(_Chunk(chunk)).shape
+
+
+def _hand_batches(hand, chunks, workers):
+    """The hand loop over ``chunks`` of variants, in this process or on forked workers
+    (which inherit the jobs: only their numbers are sent)."""
+    _JOBS[:] = [(hand, chunk) for chunk in chunks]
+    if workers == 1:
+        return [_hand_batch(job) for job in _JOBS]
+    import multiprocessing
+    with multiprocessing.get_context("fork").Pool(workers) as pool:
+        return pool.map(_hand_batch_inherited, range(len(_JOBS)), chunksize=1)
+
+
+_JOBS: list = []
+
+
+def _hand_batch_inherited(k):
+    return _hand_batch(_JOBS[k])
+
+
 def _timed(fn):
     w0, c0 = time.perf_counter(), time.process_time()
     out = fn()
@@ -168,12 +196,17 @@ def main(argv=None) -> int:
                   f"{cmed['integrate'] / cmed['hand']:.2f}x cpu")
         if "b" in parts:
             size = int(np.ceil(args.samples / args.batches))
-            rates, split = {}, []
+            rates, split, machine = {}, [], {}
+            chunks = [probe.variants[k:k + size] for k in range(0, args.samples, size)]
             for workers in (1, 2, 1, 2):
                 c0 = os.times()
                 w, _, r = _timed(lambda: sweep(workers=workers, batch_size=size))
                 c1 = os.times()
                 rates.setdefault(workers, []).append(w)
+                # the machine's own scaling: the hand batched loop on the same batches, in
+                # this process and on 2 forked processes (no fwdstep involved)
+                machine.setdefault(workers, []).append(_timed(lambda: _hand_batches(
+                    hand, chunks, workers))[0])
                 if workers == 2:     # CPU seconds of this process (serial) and of the workers
                     split.append((c1.user - c0.user + c1.system - c0.system,
                                   c1.children_user - c0.children_user
@@ -183,6 +216,9 @@ def main(argv=None) -> int:
             print(f"(b) {len(r.batches)} batches of <= {size}: 2 workers / 1 worker throughput "
                   f"{one / two:.2f}x (target >= 1.7); load average after: "
                   f"{os.getloadavg()[0]:.2f}")
+            print(f"    the hand batched loop on the same {len(chunks)} batches, 2 processes / 1: "
+                  f"{np.median(machine[1]) / np.median(machine[2]):.2f}x (what this machine "
+                  f"gives this work)")
             print(f"    with 2 workers: {serial:.2f} s CPU in this process (load, plan, collect), "
                   f"{parallel:.2f} s in the workers: on 2 free cores at most "
                   f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
