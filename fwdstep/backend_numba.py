@@ -570,7 +570,7 @@ class CompiledProgram:
         self._check_python()
 
     def _check_python(self) -> None:
-        """Raise what an object-mode block raised inside the parallel batch loop."""
+        """Raise what an object-mode block raised inside the batch loop."""
         if self.python is not None:
             self.python.check()
 
@@ -790,13 +790,17 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     run_body += ["    if bad:", "        return 1, n + 1, row"]
     run_body.append("return 0, n1, row")
     fn(f"def run_one(v, n0, n1, row, final, {fixed}{a_list}):", run_body)
+    # with object-mode blocks the variants run one after another: their calls hold the GIL,
+    # and prange threads contending for it made 8 Panda variants 4.7x the NumPy batch's
+    # time, against 2.0x in sequence (fwdstep/python_blocks.py)
+    loop = "range" if gen.python else "prange"
     fn(f"def run_all(n0, n1, rows, status, n_next, alive, {fixed}{a_list}):",
-       ["for v in prange(rows.shape[0]):",
+       [f"for v in {loop}(rows.shape[0]):",
         "    if alive[v]:",
         f"        st, nn, r = run_one(v, n0, n1, rows[v], False, {fixed}{a_list})",
         "        status[v] = st", "        n_next[v] = nn", "        rows[v] = r",
         "        if st:", "            alive[v] = False"],
-       "@njit(cache=CACHE, parallel=True)")
+       "@njit(cache=CACHE)" if gen.python else "@njit(cache=CACHE, parallel=True)")
     return "\n".join(out) + "\n"
 
 

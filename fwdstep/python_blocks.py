@@ -14,12 +14,13 @@ generated text holds only the handle's argument, never the blocks, so it stays a
 the diagram's structure and is cached on disk as any other (numba caches functions with
 object-mode blocks: the callbacks are looked up in the module's globals at run time).
 
-Batches run their variants in numba's ``prange`` threads: each call takes the GIL, and the
-program's lock besides (the variants share the library's work objects, e.g. a pinocchio
-``Data``), so the calls are serialised and every variant computes what it would alone.
-An exception cannot cross a parallel region, so in a batch a failing call is recorded and
-answered with NaN (its variant stops at the end of that step; every later call returns NaN
-at once) and ``check`` raises it after the batch call.  A single run raises it directly.
+A batch runs its variants one after another (``run_all`` without ``prange`` when a diagram
+has object-mode blocks: every call holds the GIL, and threads contending for it made a batch
+of 8 Panda variants 4.7x the NumPy batch's time, 2.0x in sequence).  The calls also take the
+program's lock (the variants share the library's work objects, e.g. a pinocchio ``Data``).
+A failing call in a batch is recorded and answered with NaN (its variant stops at the end of
+that step; every later call returns NaN at once) and ``check`` raises it after the batch
+call, so no exception crosses the compiled loop mid-batch.  A single run raises it directly.
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ Fast tests call the callbacks directly (no compiling): variant v of a stacked bl
 a block built with variant v's parameters gives, and failures are reported as on the NumPy
 path.  Slow tests (``pytest -m slow``) compile: a user block calling scipy (outputs of rank 0,
 1 and 2, a state) agrees with the NumPy path, a batch equals one-by-one compiled runs, a
-failure inside the parallel batch loop names block, time and variant; and the same for the
+failure inside the compiled batch loop names block, time and variant; and the same for the
 pinocchio blocks (panda, ur5), skipped without the ``robots`` extra.
 """
 import os
@@ -227,7 +227,7 @@ def _assert_close(got, ref, columns=None):
 @pytest.mark.slow
 def test_a_scipy_block_runs_compiled_single_and_batched(leak):
     """Ranks 0, 1, 2 and a state through object mode, feeding jitted blocks: the NumPy
-    path's numbers; a batch (prange) equals one-by-one compiled runs."""
+    path's numbers; a batch equals one-by-one compiled runs."""
     ref = fwdstep.simulate(fwdstep.load_diagram(leak), backend="numpy")
     got = fwdstep.simulate(fwdstep.load_diagram(leak), backend="compiled")
     assert float(np.abs(ref["f.R"][:, 0, 1]).max()) > 0.1     # the signals are not trivial
@@ -256,7 +256,7 @@ def test_a_failure_inside_the_compiled_batch_names_block_time_and_variant(leak):
 @pytest.mark.slow
 @pytest.mark.parametrize("robot", ["panda", "ur5"])
 def test_a_robot_batch_equals_one_by_one_compiled_runs(robot):
-    """The pinocchio blocks in numba's prange threads (one lock, the GIL): each variant of
+    """The pinocchio blocks in a compiled batch (variants in sequence): each variant of
     a batch gives its single compiled run (which test_compiled_diagrams compares with the
     NumPy path), and the first variant the NumPy path's."""
     pytest.importorskip("pinocchio")
