@@ -199,6 +199,22 @@ def test_a_kernel_digest_follows_its_code_and_frozen_globals_not_its_comments(tm
     assert digest(text.replace("C * x", "x * C")) != base
 
 
+def test_a_kernel_digest_is_the_same_in_another_process():
+    """The key of the disk cache: a builtin (range) or attribute name a kernel reads once
+    hashed a placeholder's repr, with its memory address, so no process ever found the
+    cache another one wrote."""
+    import subprocess
+    import sys
+    from fwdstep import backend_numba
+    code = ("from fwdstep import backend_numba as b; "
+            "print(b._function_digest(b._copy), b._function_digest(b._view1))")
+    there = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True, timeout=300).stdout.strip()
+    here = f"{backend_numba._function_digest(backend_numba._copy)} " \
+           f"{backend_numba._function_digest(backend_numba._view1)}"
+    assert there == here
+
+
 def test_an_edited_helper_module_never_reuses_a_cached_kernel(folder, tmp_path, monkeypatch):
     """Kernels are cached on disk (a new structure then compiles only its loop), in a folder
     keyed by every source file they depend on.  numba's own key is the kernel's file and
