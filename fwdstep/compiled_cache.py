@@ -8,7 +8,10 @@ first process running a structure pays the compile — and never usable against 
 * A generated module is stored under the SHA-256 of its text and its content is checked
   against that hash before it is imported; numba's index and data files of a module are
   checked against the hashes recorded (``seal``) right after numba wrote them, before
-  numba can load (unpickle) them.  A mismatch discards the entries and compiles afresh.
+  numba can load (unpickle) them.  A file changed since its record is discarded (one
+  warning line) and compiled afresh; a file with no record (another process still
+  compiling, or planted) is discarded quietly; recorded, intact files are kept, so
+  processes compiling at the same time do not empty each other's cache.
 * Any fault — a file where the directory should be, a read-only directory, a full disk, a
   truncated or foreign entry — gives one warning line on stderr and a fresh compile; the
   run goes on.
@@ -92,27 +95,38 @@ def _atomic_write(folder: str, path: str, data: bytes) -> None:
         raise
 
 
-def _check_numba_files(folder: str, name: str) -> None:
-    """Remove numba's files of ``name`` unless every one matches the recorded hashes."""
-    files = _numba_files(folder, name)
-    if not files:
-        return
+def _prune(files: list, sums_path: str, relative) -> bool:
+    """Remove the files numba must not read: those not recorded in ``sums_path`` (written by
+    another process that has not recorded them yet, or by nobody we know: removed quietly,
+    as they are no sign of harm) and those whose contents differ from the record (changed
+    after it was written: True, the caller warns).  Recorded, intact files are kept, so a
+    process starting while another compiles keeps the cache the others sealed."""
     try:
-        with open(_manifest(folder, name), encoding="utf-8") as fh:
+        with open(sums_path, encoding="utf-8") as fh:
             sums = json.load(fh)
     except (OSError, ValueError):
-        sums = None
-    ok = isinstance(sums, dict) and all(
-        os.path.basename(f) in sums and _sha(_read(f)) == sums[os.path.basename(f)]
-        for f in files)
-    if not ok:
+        sums = {}
+    if not isinstance(sums, dict):
+        sums = {}
+    changed = False
+    for f in files:
+        recorded = sums.get(relative(f))
+        if recorded is not None and _sha(_read(f)) == recorded:
+            continue
+        changed = changed or recorded is not None
+        try:
+            os.unlink(f)
+        except OSError:
+            pass
+    return changed
+
+
+def _check_numba_files(folder: str, name: str) -> None:
+    """Remove numba's files of ``name`` that do not match the recorded hashes (``_prune``)."""
+    files = _numba_files(folder, name)
+    if files and _prune(files, _manifest(folder, name), os.path.basename):
         warn(f"compiled-code cache entry {name} does not match its recorded hashes; "
              "compiling afresh")
-        for f in files + [_manifest(folder, name)]:
-            try:
-                os.unlink(f)
-            except OSError:
-                pass
 
 
 def _read(path: str) -> bytes:
@@ -200,23 +214,10 @@ def kernel_folder(key: str) -> str | None:
         if private_dir(path) is not None:
             return None            # load() says why, once, for the generated module
     files = _tree_files(folder)
-    if files:
-        try:
-            with open(os.path.join(folder, _SUMS), encoding="utf-8") as fh:
-                sums = json.load(fh)
-        except (OSError, ValueError):
-            sums = None
-        rel = {f: os.path.relpath(f, folder) for f in files}
-        ok = isinstance(sums, dict) and all(
-            rel[f] in sums and _sha(_read(f)) == sums[rel[f]] for f in files)
-        if not ok:
-            warn(f"compiled kernel cache {key} does not match its recorded hashes; "
-                 "compiling afresh")
-            for f in files:
-                try:
-                    os.unlink(f)
-                except OSError:
-                    pass
+    if files and _prune(files, os.path.join(folder, _SUMS),
+                        lambda f: os.path.relpath(f, folder)):
+        warn(f"compiled kernel cache {key} does not match its recorded hashes; compiling "
+             "the changed kernels afresh")
     return folder
 
 

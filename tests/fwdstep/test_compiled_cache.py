@@ -93,16 +93,39 @@ def test_planted_module_is_never_executed(folder, tmp_path, capfd):
 def test_replaced_numba_index_is_discarded_before_numba_can_load_it(folder, capfd):
     source = _fresh(7)
     name = _name(source)
-    folder.mkdir(mode=0o700)
-    (folder / f"{name}.py").write_text(source)
+    mod = compiled_cache.load(source)
     pyc = folder / "__pycache__"
     pyc.mkdir()
-    planted = pyc / f"{name}.run_one-24.py311.nbi"
-    planted.write_bytes(b"\x80\x04not what fwdstep recorded")
-    mod = compiled_cache.load(source)
+    index = pyc / f"{name}.run_one-24.py311.nbi"
+    index.write_bytes(b"written by numba in this process")
+    compiled_cache.seal(mod)
+    index.write_bytes(b"\x80\x04not what fwdstep recorded")
+    import sys
+    del sys.modules[name]
+    again = compiled_cache.load(source)
     err = capfd.readouterr().err
-    assert mod.VALUE == 7 and not planted.exists()
+    assert again.VALUE == 7 and not index.exists()
     assert "does not match its recorded hashes; compiling afresh" in err
+
+
+def test_unrecorded_numba_files_are_removed_quietly_and_recorded_ones_kept(folder, capfd):
+    """A file nobody recorded (another process is still compiling, or a planted one) is
+    never read: removed without alarming anyone, while the sealed entries stay usable."""
+    source = _fresh(9)
+    name = _name(source)
+    mod = compiled_cache.load(source)
+    pyc = folder / "__pycache__"
+    pyc.mkdir()
+    sealed = pyc / f"{name}.run_one-24.py311.nbi"
+    sealed.write_bytes(b"written by numba in this process")
+    compiled_cache.seal(mod)
+    other = pyc / f"{name}.run_all-40.py311.nbi"
+    other.write_bytes(b"\x80\x04written by a process that has not sealed yet")
+    import sys
+    del sys.modules[name]
+    again = compiled_cache.load(source)
+    assert again.VALUE == 9 and sealed.exists() and not other.exists()
+    assert capfd.readouterr().err == ""
 
 
 def test_sealed_numba_files_are_kept(folder, capfd):
@@ -262,3 +285,22 @@ def test_tampered_kernel_cache_file_is_removed_before_numba_reads_it(folder, cap
     compiled_cache.kernel_folder("k" * 24)
     assert not os.path.exists(index)
     assert "does not match its recorded hashes" in capfd.readouterr().err
+
+
+def test_a_kernel_folder_keeps_its_sealed_files_beside_another_process_unsealed_ones(
+        folder, capfd):
+    """Two processes compiling at once: the second finds files the first has not sealed
+    yet.  It removes only those (quietly); it used to warn and empty the whole folder."""
+    where = compiled_cache.kernel_folder("j" * 24)
+    sub = os.path.join(where, "blocks_x")
+    os.makedirs(sub)
+    sealed = os.path.join(sub, "m.kern-1.py311.nbi")
+    with open(sealed, "wb") as fh:
+        fh.write(b"written by numba, sealed")
+    compiled_cache.seal_folder(where)
+    fresh = os.path.join(sub, "m.other-9.py311.nbi")
+    with open(fresh, "wb") as fh:
+        fh.write(b"written by a process still compiling")
+    assert compiled_cache.kernel_folder("j" * 24) == where
+    assert os.path.exists(sealed) and not os.path.exists(fresh)
+    assert capfd.readouterr().err == ""
