@@ -444,12 +444,14 @@ class TwoLinkArm(MechanicalPlant):
         self.set_param("theta", theta)
         self.set_param("theta_after", theta_after)
         self.set_param("payload_time", [payload_time])
+        # the jump time, also kept outside p: variants picking up the payload at different
+        # times never share a batch (one batch, one step grid), as Step and WhiteNoise do
+        self.jumps = (float(payload_time),) if np.any(theta_after != theta) else ()
         self.finalize(1)
 
     def discontinuities(self, t_final: float) -> np.ndarray:
-        """The payload time(s) of the variants that have a payload."""
-        changed = np.any(self.p.theta_after != self.p.theta, axis=1)
-        return np.unique(self.p.payload_time[changed, 0]) if np.any(changed) else np.zeros(0)
+        """The payload time, when there is a payload."""
+        return np.asarray(self.jumps, dtype=float)
 
     def finalize(self, batch: int) -> None:
         gravity = bool(np.any(self.p.theta[:, 4:] != 0.0))

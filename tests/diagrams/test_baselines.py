@@ -105,6 +105,37 @@ log: [arm.q, arm.qdot]
                                atol=1e-8)
 
 
+def test_a_sweep_over_the_payload_time_runs_each_variant_as_alone(tmp_path):
+    """Variants picking up the payload at different times never share a batch (each batch
+    has one step grid, split at its jump times); a batch of them used to end in a bare
+    IndexError.  Each variant equals its own run, and one without payload runs too."""
+    from fwdstep.sweep import run_sweep
+    path = tmp_path / "payload.yaml"
+    path.write_text("""
+parameters: {T: 0.35, load: 1.0}
+blocks:
+  tau: {type: Constant, value: [1.5, -0.5]}
+  arm: {type: TwoLinkArm, q0: [0.3, -0.2], gravity: 9.81, payload: load, payload_time: T}
+  e:   {type: Sum, signs: "+-", shape: [2]}
+  z:   {type: Constant, value: [0.0, 0.0]}
+connections:
+  - tau.y -> arm.tau
+  - arm.q -> e.u1
+  - z.y -> e.u2
+simulation: {t_final: 0.5, step: 0.002, solver: rk4}
+metrics: {error: e.y}
+""")
+    variants = [{"T": 0.1234}, {"T": 0.35}, {"T": 0.35, "load": 2.0}, {"load": 0.0}]
+    sweep = run_sweep(str(path), variants=variants, workers=1)
+    assert [v.status for v in sweep.variants] == ["ok"] * 4
+    assert len(sweep.batches) == 3                 # 0.1234 | 0.35 (two loads) | no payload
+    for k, values in enumerate(variants):
+        alone = fwdstep.simulate(fwdstep.load_diagram(str(path), values))
+        e = sweep.parts[[k in p["indices"] for p in sweep.parts].index(True)]
+        col = list(e["indices"]).index(k)
+        np.testing.assert_allclose(e["e"][:, col], alone["e.y"], rtol=0, atol=1e-12)
+
+
 def test_robustness_study_smoke(tmp_path):
     """examples/study_robustness.py builds and runs three scenarios (0.2 s, one controller):
     the edited diagrams load, the error is measured on the true q and torques are bounded
