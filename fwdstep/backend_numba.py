@@ -256,6 +256,15 @@ def python_block(block) -> bool:
     return how == "objmode"
 
 
+def _in_python(block) -> bool:
+    """Whether the loop calls ``block``'s methods in object mode: it asks to
+    (``python_block``), or it is a linear block without kernels that the fusion left alone
+    (too large: Theorem 6's filter bank on the robots, 903 states); its NumPy-path methods
+    (scipy.sparse products) are then its one definition, as on the NumPy path."""
+    return python_block(block) or block.kernels is None or (
+        block.kernels.output is None and bool(block.outputs))
+
+
 def _fusable_alone(block) -> bool:
     from .linear import fusable
     return fusable(block)
@@ -319,7 +328,7 @@ class _Stage:
         self.group_no = {}
         self.block_args = {}
         for kind, op, _ in ops:
-            if kind == "call" and python_block(op.block):
+            if kind == "call" and _in_python(op.block):
                 gen.python.append(op.block)
                 self.block_args[id(op)] = len(gen.python) - 1
             elif kind == "call":
@@ -379,7 +388,7 @@ class _Stage:
                     done.update(idx for idx, _ in op.outputs)
                 continue
             blk = op.block
-            if python_block(blk):
+            if _in_python(blk):
                 if blk.outputs:
                     lines += self._python_call(op, "_pyout", buf, ts, [
                         (f"s{idx}", len(self.shapes[idx])) for idx in op.outputs],
@@ -472,7 +481,7 @@ class _Stage:
             blk = op.block
             if op.state is None or blk.name in fused:
                 continue
-            if python_block(blk):
+            if _in_python(blk):
                 d = f"dx{self.block_args[id(op)]}"
                 lines += self._python_call(op, "_pyder", buf, ts, [(d, 1)],
                                            [f"s{u}" for u in op.inputs])
@@ -515,17 +524,6 @@ def check_compilable(d) -> None:
             raise ConfigError(f"backend 'compiled' cannot run block '{blk.name}' "
                               f"({blk.type_name}): {reason}; use --backend numpy",
                               file=d.file)
-    # a linear block without kernels runs only fused: refused when too large to fuse (its
-    # dense matrices would exceed fwdstep.linear.MAX_FUSED_ELEMENTS)
-    ops, _ = _ops_for(d.schedule, [tuple(s) for s in d.signal_shapes], d.constant_signals)
-    for kind, op, _ in ops:
-        blk = op.block if kind == "call" else None
-        if blk is not None and not python_block(blk) and (blk.kernels is None or (
-                blk.kernels.output is None and blk.outputs)):
-            raise ConfigError(f"backend 'compiled' cannot run block '{blk.name}' "
-                              f"({blk.type_name}): it declares no kernels and its linear form "
-                              f"is too large to fuse ({blk.n_states} states); use --backend "
-                              "numpy", file=d.file)
 
 
 # ---------------------------------------------------------------------------- the program

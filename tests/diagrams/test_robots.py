@@ -1,7 +1,6 @@
 """The diagrams of diagrams/robots/ (Panda and UR5 through pinocchio): every one loads, the
-Panda's Theorem 1 (ell = 2) converges, computed torque decays at its designed rate, and the
-compiled backend refuses Theorem 6 (a filter bank too large to fuse) with one line; the others
-run compiled (tests/fwdstep/test_compiled_diagrams.py, test_python_blocks.py)."""
+Panda's Theorem 1 (ell = 2) converges and computed torque decays at its designed rate.  Every
+one runs compiled too (tests/fwdstep/test_compiled_diagrams.py, test_python_blocks.py)."""
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +9,6 @@ import pytest
 pytest.importorskip("pinocchio")
 
 import fwdstep  # noqa: E402
-from fwdstep.errors import FwdstepError  # noqa: E402
 
 ROBOTS = Path(__file__).resolve().parents[2] / "diagrams" / "robots"
 DIAGRAMS = sorted(ROBOTS.glob("*.yaml"))
@@ -56,15 +54,3 @@ def test_computed_torque_decays_at_the_designed_rate():
     expected = (e0 + (edot0 + omega * e0) * t) * np.exp(-omega * t)
     np.testing.assert_allclose(r["e.y"][-1], expected, rtol=0, atol=1e-9)
 
-
-def test_compiled_backend_refuses_theorem6_in_one_line():
-    """The pinocchio blocks run compiled (object mode); the filter bank W = G(p) Y of 648
-    states has no kernel and is too large to fuse: refused before any code is generated."""
-    pytest.importorskip("numba")
-    d = fwdstep.load_diagram(str(ROBOTS / "ur5_theorem6.yaml"), overrides={"t_final": 0.01})
-    with pytest.raises(FwdstepError) as info:
-        fwdstep.simulate(d, backend="compiled")
-    message = str(info.value)
-    assert message.endswith("ur5_theorem6.yaml: backend 'compiled' cannot run block 'ea/W' "
-                            "(TransferFunction): it declares no kernels and its linear form is "
-                            "too large to fuse (648 states); use --backend numpy"), message

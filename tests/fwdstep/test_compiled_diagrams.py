@@ -32,12 +32,9 @@ STEPS = 40
 #: block types the compiled backend refuses, and why (the diagrams holding one are refused)
 REFUSED = {
     # (URDFArm and URDFRegressor, which call pinocchio, run compiled in numba's object mode:
-    # compile_with = "objmode", tests/fwdstep/test_python_blocks.py)
+    # compile_with = "objmode", tests/fwdstep/test_python_blocks.py; so does a linear block
+    # too large to fuse, e.g. Theorem 6's filter bank on the robots)
 }
-#: diagrams refused for a linear block without kernels whose form is too large to fuse
-#: (Theorem 6's filtered regressor W = G(p) Y on the robots: a TransferFunction of
-#: order x n x p states), and that block
-TOO_LARGE = {"robots/panda_theorem6.yaml": "ea/W", "robots/ur5_theorem6.yaml": "ea/W"}
 
 
 def _name(path):
@@ -78,13 +75,6 @@ def test_compiled_backend_refuses_exactly_the_listed_blocks(path):
         pytest.skip("scipy solve_ivp solver: NumPy path only")
     d = compile_spec(spec)
     refused = _refused_types(d)
-    if _name(path) in TOO_LARGE:
-        with pytest.raises(ConfigError, match=rf"backend 'compiled' cannot run block "
-                                              rf"'{TOO_LARGE[_name(path)]}' \(TransferFunction\)"
-                                              r": it declares no kernels and its linear form "
-                                              r"is too large to fuse \(\d+ states\)"):
-            backend_numba.check_compilable(d)
-        return
     if not refused:
         backend_numba.check_compilable(d)          # raises if any block is refused
         return
@@ -105,8 +95,8 @@ def test_shipped_diagram_on_both_paths(path):
     if spec.simulation.solver in IVP_METHODS:
         pytest.skip("scipy solve_ivp solver: NumPy path only")
     d = compile_spec(spec)
-    if _refused_types(d) or _name(path) in TOO_LARGE:
-        pytest.skip(f"refused: {', '.join(_refused_types(d)) or 'too large'} (see the fast test)")
+    if _refused_types(d):
+        pytest.skip(f"refused: {', '.join(_refused_types(d))} (see the fast test)")
     ref = fwdstep.simulate(d, backend="numpy")
     got = fwdstep.simulate(d, backend="compiled")
     np.testing.assert_array_equal(got.t, ref.t)
