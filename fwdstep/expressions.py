@@ -251,6 +251,8 @@ class _Evaluator:
         known = ", ".join(sorted(self.ns)) or "(none)"
         close = difflib.get_close_matches(node.id, list(self.ns) + list(CONSTANTS), n=1)
         hint = f"did you mean '{close[0]}'? " if close else ""
+        if node.id.lower() in ("yes", "no", "on", "off"):
+            hint = "a flag is written true or false (yes, no, on, off are names here); " + hint
         raise self.fail(f"refers to undefined name '{node.id}'; {hint}defined names are: "
                         f"{known}")
 

@@ -144,11 +144,17 @@ _DiagramLoader.add_multi_constructor("tag:yaml.org,2002:python/", _refuse_tag)
 for _tag in ("binary", "timestamp", "set", "omap", "pairs"):
     _DiagramLoader.add_constructor(f"tag:yaml.org,2002:{_tag}",
                                    lambda loader, node: _refuse_tag(loader, "", node))
-# dates like 2024-01-01 are plain strings here, not datetime objects
+# dates like 2024-01-01 are plain strings here, not datetime objects; booleans are YAML
+# 1.2's true/false only: YAML 1.1 also read yes/no/on/off as booleans, so a parameter or
+# block named `off` became False (and `gain: no` a flag)
 _DiagramLoader.yaml_implicit_resolvers = {
-    k: [(tag, rx) for tag, rx in v if tag != "tag:yaml.org,2002:timestamp"]
+    k: [(tag, rx) for tag, rx in v
+        if tag not in ("tag:yaml.org,2002:timestamp", "tag:yaml.org,2002:bool")]
     for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
+_DiagramLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
+    list("tTfF"))
 
 
 def _expanded_size(node: yaml.Node, memo: dict, limit: int) -> int:

@@ -189,3 +189,10 @@ def test_indexing_slicing_and_reshape_agree_with_numpy(src, expected):
     out = evaluate(src, {**NS, "M": M})
     np.testing.assert_array_equal(out, expected)
     assert np.shape(out) == np.shape(expected)
+
+
+def test_a_yaml_1_1_flag_word_gets_a_hint():
+    from fwdstep.errors import DiagramError
+    from fwdstep.expressions import evaluate
+    with pytest.raises(DiagramError, match="a flag is written true or false"):
+        evaluate("yes", {})

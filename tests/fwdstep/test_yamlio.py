@@ -155,7 +155,7 @@ def test_missing_file_and_directory(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("a: 1\nb:\n  c: 2\n  c: 3\n", "4: duplicate key 'c' (first defined at line 3)"),
     ("1: a\n1.0: b\n", "2: duplicate key '1.0' (first defined at line 1)"),
-    ("true: a\nyes: b\n", "2: duplicate key 'True' (first defined at line 1)"),
+    ("true: a\nTrue: b\n", "2: duplicate key 'True' (first defined at line 1)"),
     ("blocks:\n  g: {type: Gain}\n  g: {type: Sum}\n",
      "3: duplicate block name 'g' (first defined at line 2)"),
     ("parameters:\n  blocks: 1\nblocks:\n  g: 1\n  h: 2\n  h: 3\n",
@@ -261,3 +261,11 @@ def test_values_are_counted_exactly_below_the_separator_estimate(monkeypatch):
     with pytest.raises(YamlError) as info:
         parse_yaml_text(text)
     assert "the document has more than 1000 values" in str(info.value)
+
+
+def test_only_true_and_false_are_flags():
+    """YAML 1.1 read yes/no/on/off as booleans: a parameter named `off` became False and
+    failed as "parameter name 'False' is not a valid name"."""
+    from fwdstep.yamlio import parse_yaml_text
+    doc = parse_yaml_text("off: 1\non: [yes, no, Off]\nt: true\nf: FALSE\n", "x.yaml")
+    assert doc == {"off": 1, "on": ["yes", "no", "Off"], "t": True, "f": False}
