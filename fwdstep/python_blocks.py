@@ -16,8 +16,9 @@ object-mode blocks: the callbacks are looked up in the module's globals at run t
 
 A batch runs its variants one after another (``run_all`` without ``prange`` when a diagram
 has object-mode blocks: every call holds the GIL, and threads contending for it made a batch
-of 8 Panda variants 4.7x the NumPy batch's time, 2.0x in sequence).  The calls also take the
-program's lock (the variants share the library's work objects, e.g. a pinocchio ``Data``).
+of 8 Panda variants 4.7x the NumPy batch's time, 2.0x in sequence), so the variants, which
+share the library's work objects (a pinocchio ``Data``), never call it at the same time.
+A signal (Ctrl-C, fwdstep.signals) arriving during a call ends the run as "interrupted".
 A failing call in a batch is recorded and answered with NaN (its variant stops at the end of
 that step; every later call returns NaN at once) and ``check`` raises it after the batch
 call, so no exception crosses the compiled loop mid-batch.  A single run raises it directly.
@@ -26,7 +27,6 @@ from __future__ import annotations
 
 import copy
 import itertools
-import threading
 import weakref
 from types import SimpleNamespace
 
@@ -47,7 +47,6 @@ class PythonBlocks:
                        for blk in blocks]
         self.ports = [[(p.name, (1,) + p.shape) for p in blk.outputs.values()]
                       for blk in blocks]
-        self.lock = threading.Lock()
         self.failure = None            # the first failure of a batch call
 
     def check(self) -> None:
@@ -84,8 +83,7 @@ def output(handle, j, v, t, x, *u) -> tuple:
     ports = entry.ports[j]
     if entry.failure is None:
         try:
-            with entry.lock:
-                y = blk.output(t, x, u)
+            y = blk.output(t, x, u)
             if len(y) != len(ports):
                 raise _Mismatch(f"block '{blk.name}' ({blk.type_name}) returned {len(y)} "
                                 f"outputs at t = {t:.6g}, but declares {len(ports)}")
@@ -110,8 +108,7 @@ def derivative(handle, j, v, t, x, *u) -> np.ndarray:
     shape = (1, blk.n_states)
     if entry.failure is None:
         try:
-            with entry.lock:
-                dx = blk.derivative(t, x, u)
+            dx = blk.derivative(t, x, u)
             try:
                 return _copy(dx, shape)
             except ValueError:
@@ -137,9 +134,11 @@ def _copy(value, shape: tuple) -> np.ndarray:
 
 
 def _failed(entry, blk, exc, t, u, v) -> None:
-    """Record the first failure of a batch; a single run raises it at once (no parallel
-    region).  An error becomes the NumPy path's ``BlockRuntimeError`` (block, time, inputs;
+    """Record the first failure of a batch (raised after the batch call); a single run
+    raises it at once.  An error becomes the NumPy path's ``BlockRuntimeError`` (block, time, inputs;
     the variant in a batch), chained to it; a signal (KeyboardInterrupt) stays itself."""
+    if isinstance(exc, SystemError) and isinstance(exc.__cause__, KeyboardInterrupt):
+        exc = exc.__cause__           # a signal handler raised inside a C call: the signal
     error = exc
     if isinstance(exc, _Mismatch):
         error = BlockRuntimeError(str(exc), time=t, block=blk.name)
@@ -152,6 +151,5 @@ def _failed(entry, blk, exc, t, u, v) -> None:
         error.__cause__ = None if isinstance(exc, _Mismatch) else exc
     if entry.batch == 1:
         raise error
-    with entry.lock:
-        if entry.failure is None:
-            entry.failure = error
+    if entry.failure is None:
+        entry.failure = error
