@@ -180,6 +180,23 @@ def test_an_interruption_inside_a_batch_call_is_raised_as_it_came(leak):
         entry.check()
 
 
+def test_a_signal_inside_a_c_call_stays_a_signal(leak):
+    """A signal handler that raises while C code runs (a lock's acquire) comes out as
+    SystemError caused by the KeyboardInterrupt: the run must end 'interrupted'."""
+    blk = _block(fwdstep.load_diagram(leak), "f")
+
+    def signalled(t, x, u):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("returned a result with an exception set") from exc
+    blk.derivative = signalled
+    owner = type("Owner", (), {})()
+    handle, _ = python_blocks.register(owner, [blk], 1)
+    with pytest.raises(KeyboardInterrupt):
+        python_blocks.derivative(handle, 0, 0, 0.0, np.zeros((1, 2)), np.ones((1, 2)))
+
+
 def test_a_wrong_output_shape_names_block_port_and_shapes(leak):
     blk = _block(fwdstep.load_diagram(leak), "f")
     blk.output = lambda t, x, u: (x, np.zeros((1, 3, 2)), np.zeros(1))
