@@ -198,7 +198,7 @@ def main(argv=None) -> int:
             size = int(np.ceil(args.samples / args.batches))
             rates, split, machine = {}, [], {}
             chunks = [probe.variants[k:k + size] for k in range(0, args.samples, size)]
-            for workers in (1, 2, 1, 2):
+            for workers in (1, 2) * args.repeats:          # interleaved
                 c0 = os.times()
                 w, _, r = _timed(lambda: sweep(workers=workers, batch_size=size))
                 c1 = os.times()
