@@ -90,3 +90,36 @@ def pending() -> Interrupted | None:
     if signum:
         _state["acted"] = signum             # it ends the command: later ones are ignored
     return Interrupted(signum) if signum else None
+
+
+@contextlib.contextmanager
+def held():
+    """Hold SIGINT, SIGTERM and SIGHUP back during a short step that must complete together
+    with its bookkeeping (a compiled chunk: numba never looks at signals, so one arriving
+    during the chunk is raised by Python the moment the chunk returns, before its rows were
+    counted, and they were lost).  The signal is raised when the block ends.  Under
+    ``handled()`` this is ``deferred()``; otherwise (the Python API, main thread) a
+    temporary handler records SIGINT and the block ends with ``KeyboardInterrupt``."""
+    ours = signal.getsignal(signal.SIGINT) is _handler
+    if ours or threading.current_thread() is not threading.main_thread():
+        if ours:
+            with deferred():
+                yield
+            late = pending()
+            if late is not None:
+                raise late
+        else:
+            yield
+        return
+    caught = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    except (OSError, ValueError):
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt

@@ -382,44 +382,47 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
                       if x0 is None else np.asarray(x0, dtype=float))
             sample = _sampler(d, events, x) if events is not None and events.discrete else None
             while n < n_steps:
-                n1 = min(n + backend_numba.CHUNK, n_steps)
-                if B == 1:
-                    codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
-                else:                         # variants in parallel (numba prange)
-                    prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
-                paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
-                if paused.any():                  # all alive variants stop at that row
-                    q = int(prog.events[3][np.flatnonzero(paused)[0]])
-                    a, lo = prog.events[2][q, 0], prog.events[2][q, 2]
-                    apply_updates(prog.row_events[q], max(a, lo), x, sample)
-                    codes[paused] = 0
-                    n1 = int(n_next[paused][0])   # go on from that step (and row)
-                newly = (codes != 0) & alive
-                if newly.any():
-                    died_at[newly] = n_next[newly] * h     # t + h of the failing step,
-                    alive &= ~newly                        # status 2: t of the record
-                    for b in np.flatnonzero(newly) if B > 1 else ():
-                        reasons[int(b)] = (
-                            _compiled_output_failure(d, died_at[b], x, b, alone=True)[0]
-                            if codes[b] == 2 else _divergence_message(d, x, bound, died_at[b], b))
-                    if not alive.any():
-                        last = int(np.argmax(n_next))
-                        n = int(n_next.max()) - 1
-                        t = n * h
-                        row = int(rows.max())
-                        status = "diverged"
-                        if codes[last] == 2:         # an unrecorded output not finite
-                            t = float(n_next[last] * h)
-                            message, x = _compiled_output_failure(d, t, x, last)
+                with signals.held():      # a signal during the chunk ends the run after
+                    # its rows are counted (Python raised it the moment the chunk returned)
+                    n1 = min(n + backend_numba.CHUNK, n_steps)
+                    if B == 1:
+                        codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
+                    else:                         # variants in parallel (numba prange)
+                        prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
+                    paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
+                    if paused.any():                  # all alive variants stop at that row
+                        q = int(prog.events[3][np.flatnonzero(paused)[0]])
+                        a, lo = prog.events[2][q, 0], prog.events[2][q, 2]
+                        apply_updates(prog.row_events[q], max(a, lo), x, sample)
+                        codes[paused] = 0
+                        n1 = int(n_next[paused][0])   # go on from that step (and row)
+                    newly = (codes != 0) & alive
+                    if newly.any():
+                        died_at[newly] = n_next[newly] * h     # t + h of the failing step,
+                        alive &= ~newly                        # status 2: t of the record
+                        for b in np.flatnonzero(newly) if B > 1 else ():
+                            reasons[int(b)] = (
+                                _compiled_output_failure(d, died_at[b], x, b, alone=True)[0]
+                                if codes[b] == 2
+                                else _divergence_message(d, x, bound, died_at[b], b))
+                        if not alive.any():
+                            last = int(np.argmax(n_next))
+                            n = int(n_next.max()) - 1
+                            t = n * h
+                            row = int(rows.max())
+                            status = "diverged"
+                            if codes[last] == 2:         # an unrecorded output not finite
+                                t = float(n_next[last] * h)
+                                message, x = _compiled_output_failure(d, t, x, last)
+                                break
+                            message = _divergence_message(d, x, bound, t + h)
                             break
-                        message = _divergence_message(d, x, bound, t + h)
-                        break
-                n = n1
-                t = n * h
-                row = int(rows.max())
-                if progress is not None and _time.perf_counter() >= next_report:
-                    progress(n / n_steps)
-                    next_report = _time.perf_counter() + 1.0
+                    n = n1
+                    t = n * h
+                    row = int(rows.max())
+                    if progress is not None and _time.perf_counter() >= next_report:
+                        progress(n / n_steps)
+                        next_report = _time.perf_counter() + 1.0
             else:
                 t = n_steps * h
                 end = events.final if events is not None else None

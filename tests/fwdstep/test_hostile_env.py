@@ -311,6 +311,45 @@ def test_a_signal_during_the_numba_compile_ends_the_run_after_it(tmp_path, capsy
     assert json.loads((outdir / "summary.json").read_text())["status"] == "interrupted"
 
 
+@pytest.mark.slow                 # compiles a small structure (seconds; cached afterwards)
+@pytest.mark.parametrize("api", [False, True])
+def test_a_signal_during_a_compiled_chunk_keeps_the_chunks_rows(tmp_path, capsys, monkeypatch,
+                                                                 api):
+    # numba never looks at signals: Python raised the signal the moment a chunk returned,
+    # before its rows were counted, so a run interrupted in its second chunk kept no row of
+    # its first.  The signal now ends the run after the chunk (fwdstep.signals.held).
+    backend_numba = pytest.importorskip("fwdstep.backend_numba")
+    real = backend_numba.CompiledProgram.run
+    calls = []
+
+    def run_then_signal(self, n0, n1, row):
+        out = real(self, n0, n1, row)
+        calls.append(n1)
+        if n1 == 4000:                           # arrives during the second chunk
+            os.kill(os.getpid(), signal.SIGINT if api else signal.SIGTERM)
+        return out
+
+    monkeypatch.setattr(backend_numba.CompiledProgram, "run", run_then_signal)
+    path = write(tmp_path, DIAGRAM.replace("t_final: 0.1, step: 0.01",
+                                           "t_final: 100, step: 0.01"))
+    if api:
+        with pytest.raises(fwdstep.SimulationInterrupted) as info:
+            fwdstep.simulate(fwdstep.load_diagram(path), backend="compiled")
+        assert str(info.value) == "interrupted by the user at t = 40"
+        r = info.value.result
+        assert r.status == "interrupted"
+    else:
+        outdir = tmp_path / "out"
+        code = cli.main(["run", path, "-o", str(outdir), "-q", "--no-plots", "--backend",
+                         "compiled"])
+        assert code == 143
+        assert capsys.readouterr().err == "fwdstep: terminated (SIGTERM) at t = 40\n"
+        r = fwdstep.load_result(str(outdir))
+    assert calls[-2:] == [2000, 4000]            # (a first call may compile)
+    assert len(r.t) == 4000 and r.t[-1] == pytest.approx(39.99, abs=1e-9)   # was 2000 rows
+    np.testing.assert_allclose(r["int.y"][-1], [39.99, 79.98], rtol=1e-12)
+
+
 # ------------------------------------------------------------------ budgets
 HUGE_LOG = """\
 blocks:

@@ -40,3 +40,24 @@ def test_each_command_starts_afresh():
         with pytest.raises(signals.Interrupted) as info:
             os.kill(os.getpid(), signal.SIGINT)
         assert info.value.signum == signal.SIGINT
+
+
+def test_held_raises_a_signal_at_its_end_with_fwdsteps_handlers():
+    with signals.handled():
+        done = []
+        with pytest.raises(signals.Interrupted) as info:
+            with signals.held():
+                os.kill(os.getpid(), signal.SIGTERM)
+                done.append("the rest of the block ran")
+        assert done and info.value.signum == signal.SIGTERM
+
+
+def test_held_raises_keyboard_interrupt_at_its_end_without_them():
+    """The Python API: Python's own SIGINT handler would raise inside the block."""
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with signals.held():
+            os.kill(os.getpid(), signal.SIGINT)
+            done.append("the rest of the block ran")
+    assert done
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
