@@ -57,16 +57,8 @@ simulation: {t_final: 0.5, step: 0.001, solver: rk4, log_every: 3}
 
 
 @pytest.fixture(autouse=True)
-def cache(request, monkeypatch, tmp_path_factory):
-    # pytest's cache dir keeps the compiled code between runs; without the cache plugin
-    # (-p no:cacheprovider) a temporary folder still isolates the test from ~/.cache
-    store = getattr(request.config, "cache", None)
-    if store is not None:
-        folder = store.mkdir("fwdstep-numba")
-    else:   # one folder per session: generated modules are also cached in-process
-        folder = tmp_path_factory.getbasetemp() / "fwdstep-numba"
-        folder.mkdir(exist_ok=True)
-    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(folder))
+def cache(numba_cache):
+    return numba_cache
 
 
 @pytest.fixture

@@ -57,13 +57,8 @@ def _refused_types(d):
 
 
 @pytest.fixture(autouse=True)
-def cache(request, monkeypatch, tmp_path_factory):
-    store = getattr(request.config, "cache", None)
-    folder = store.mkdir("fwdstep-numba") if store is not None else \
-        tmp_path_factory.getbasetemp() / "fwdstep-numba"
-    os.makedirs(folder, exist_ok=True)
-    os.chmod(folder, 0o700)
-    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(folder))
+def cache(numba_cache):
+    return numba_cache
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=_name)
