@@ -12,6 +12,7 @@ told once (pressing Ctrl-C again and again never adds a second message or a trac
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 
@@ -99,7 +100,8 @@ def held():
     during the chunk is raised by Python the moment the chunk returns, before its rows were
     counted, and they were lost).  The signal is raised when the block ends.  Under
     ``handled()`` this is ``deferred()``; otherwise (the Python API, main thread) a
-    temporary handler records SIGINT and the block ends with ``KeyboardInterrupt``."""
+    temporary handler records SIGINT and the block ends as the handler it replaced would
+    have acted (Python's own: ``KeyboardInterrupt``; an ignored SIGINT stays ignored)."""
     ours = signal.getsignal(signal.SIGINT) is _handler
     if ours or threading.current_thread() is not threading.main_thread():
         if ours:
@@ -121,5 +123,7 @@ def held():
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
-    if caught:
-        raise KeyboardInterrupt
+    if caught and callable(previous):          # Python's own raises KeyboardInterrupt
+        previous(signal.SIGINT, None)
+    elif caught and previous == signal.SIG_DFL:
+        os.kill(os.getpid(), signal.SIGINT)    # what it would have done: end the process

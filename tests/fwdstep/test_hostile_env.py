@@ -333,8 +333,12 @@ def test_a_signal_during_a_compiled_chunk_keeps_the_chunks_rows(tmp_path, capsys
     path = write(tmp_path, DIAGRAM.replace("t_final: 0.1, step: 0.01",
                                            "t_final: 100, step: 0.01"))
     if api:
-        with pytest.raises(fwdstep.SimulationInterrupted) as info:
-            fwdstep.simulate(fwdstep.load_diagram(path), backend="compiled")
+        previous = signal.signal(signal.SIGINT, signal.default_int_handler)   # Python's own
+        try:
+            with pytest.raises(fwdstep.SimulationInterrupted) as info:
+                fwdstep.simulate(fwdstep.load_diagram(path), backend="compiled")
+        finally:
+            signal.signal(signal.SIGINT, previous)
         assert str(info.value) == "interrupted by the user at t = 40"
         r = info.value.result
         assert r.status == "interrupted"

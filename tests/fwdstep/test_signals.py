@@ -52,12 +52,23 @@ def test_held_raises_a_signal_at_its_end_with_fwdsteps_handlers():
         assert done and info.value.signum == signal.SIGTERM
 
 
-def test_held_raises_keyboard_interrupt_at_its_end_without_them():
-    """The Python API: Python's own SIGINT handler would raise inside the block."""
-    done = []
-    with pytest.raises(KeyboardInterrupt):
-        with signals.held():
-            os.kill(os.getpid(), signal.SIGINT)
-            done.append("the rest of the block ran")
-    assert done
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+@pytest.mark.parametrize("before", [signal.default_int_handler, signal.SIG_IGN])
+def test_held_acts_at_its_end_as_the_handler_it_replaced(before):
+    """The Python API: Python's own SIGINT handler would raise inside the block; an
+    ignored SIGINT stays ignored."""
+    previous = signal.signal(signal.SIGINT, before)
+    try:
+        done = []
+        if before is signal.SIG_IGN:
+            with signals.held():
+                os.kill(os.getpid(), signal.SIGINT)
+                done.append("the rest of the block ran")
+        else:
+            with pytest.raises(KeyboardInterrupt):
+                with signals.held():
+                    os.kill(os.getpid(), signal.SIGINT)
+                    done.append("the rest of the block ran")
+        assert done
+        assert signal.getsignal(signal.SIGINT) == before
+    finally:
+        signal.signal(signal.SIGINT, previous)
