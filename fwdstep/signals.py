@@ -102,8 +102,9 @@ def held():
     ``handled()`` this is ``deferred()``; otherwise (the Python API, main thread) a
     temporary handler records SIGINT and the block ends as the handler it replaced would
     have acted (Python's own: ``KeyboardInterrupt``; an ignored SIGINT stays ignored)."""
-    ours = signal.getsignal(signal.SIGINT) is _handler
-    if ours or threading.current_thread() is not threading.main_thread():
+    current = signal.getsignal(signal.SIGINT)
+    ours = current is _handler
+    if ours or current is None or threading.current_thread() is not threading.main_thread():
         if ours:
             with deferred():
                 yield
