@@ -174,8 +174,15 @@ class _SinusoidSum(Block):
         # d^j/dt^j sin(a) = sin(a + j pi/2): +sin, +cos, -sin, -cos, ...  The sign is folded
         # into the coefficients: even orders multiply sin(arg), odd orders cos(arg).
         signs = np.where((orders // 2) % 2 == 0, 1.0, -1.0)
-        coef = (signs[:, None, None] * amplitude[None]
-                * frequency[None] ** orders[:, None, None])            # (m+1, N, K)
+        with np.errstate(over="ignore", invalid="ignore"):
+            coef = (signs[:, None, None] * amplitude[None]
+                    * frequency[None] ** orders[:, None, None])        # (m+1, N, K)
+        if not np.all(np.isfinite(coef)):
+            j = int(np.argmax(~np.all(np.isfinite(coef), axis=(1, 2))))
+            raise ParameterError(
+                f"block '{self.name}': amplitude x frequency^{j} (derivative {j}) is larger "
+                f"than the largest float for frequency up to {np.max(np.abs(frequency)):.3g} "
+                f"rad/s; use a smaller frequency or fewer derivatives", block=self.name)
         self.set_param("frequency", frequency)
         self.set_param("phase", phase)
         self.set_param("offset", offset)
@@ -457,7 +464,13 @@ class Polynomial(Block):
         for j in range(min(m, degree) + 1):
             k = np.arange(j, degree + 1)
             falling = np.array([math.perm(int(ki), j) for ki in k], dtype=float)
-            coef[j, :, :degree + 1 - j] = c[:, j:] * falling
+            with np.errstate(over="ignore", invalid="ignore"):
+                coef[j, :, :degree + 1 - j] = c[:, j:] * falling
+            if not np.all(np.isfinite(coef[j])):
+                raise ParameterError(
+                    f"block '{self.name}': the coefficients of derivative {j} (c_k k!/(k-{j})!) "
+                    f"are larger than the largest float; use smaller coefficients or fewer "
+                    f"derivatives", block=self.name)
         self.set_param("coef", coef)                                  # (m+1, n, d+1)
         self._m = m
         self._scalar = scalar

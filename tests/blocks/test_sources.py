@@ -300,3 +300,24 @@ def test_bad_sizes_are_refused_before_allocation():
         RandomDisturbance("b", n=10 ** 6, std=1.0, cutoff=1.0, components=10 ** 6)
     with pytest.raises(ParameterError, match="'amplitude' must be a number, an"):
         Sine("b", amplitude=np.ones((2, 2, 2)), frequency=1.0)
+
+
+def test_a_frequency_whose_derivatives_overflow_is_refused_in_one_line():
+    """Found by the fuzz test: w = 1.34e154 with two derivatives overflowed w^2 in setup (a
+    RuntimeWarning, an error under the test settings, instead of a ParameterError)."""
+    from fwdstep.blocks.sources import Sine
+    from fwdstep.errors import ParameterError
+    with pytest.raises(ParameterError) as info:
+        Sine("s", amplitude=[1.0, 0.5], frequency=1.3407807929942597e+154, derivatives=2)
+    assert str(info.value) == (
+        "block 's': amplitude x frequency^2 (derivative 2) is larger than the largest float "
+        "for frequency up to 1.34e+154 rad/s; use a smaller frequency or fewer derivatives")
+    Sine("s", amplitude=[1.0, 0.5], frequency=1.3407807929942597e+154)    # no derivative: ok
+
+
+def test_polynomial_derivative_coefficients_that_overflow_are_refused_in_one_line():
+    with pytest.raises(ParameterError) as info:
+        Polynomial("p", coefficients=[1e308] * 40, derivatives=8)
+    assert str(info.value) == (
+        "block 'p': the coefficients of derivative 1 (c_k k!/(k-1)!) are larger than the "
+        "largest float; use smaller coefficients or fewer derivatives")
