@@ -78,6 +78,17 @@ def _pairs(d: dict) -> str:
     return _table([{"name": k, "value": v} for k, v in (d or {}).items()], ["name", "value"])
 
 
+def _diagram_section(summary: dict) -> list:
+    """The "Diagram" heading, the picture of ``summary['diagram']`` and any note about it."""
+    svg, note = diagram_picture(summary)
+    out = ["<h2>Diagram</h2>"]
+    if svg is not None:
+        out.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}</div>')
+    if note:
+        out.append(f"<p>{html.escape(note)}</p>")
+    return out
+
+
 def diagram_picture(summary: dict) -> tuple:
     """(SVG bytes or None, note) of the run's diagram, with the parameters as run."""
     import shutil
@@ -130,13 +141,7 @@ def report_html(run_dir: str) -> str:
                  "steps": s.get("steps"), "variants": s.get("batch"),
                  "wall time [s]": s.get("wall_time_s"), "run directory": run_dir}
         parts.append(_pairs(facts))
-        svg, note = diagram_picture(s)
-        parts.append("<h2>Diagram</h2>")
-        if svg is not None:
-            parts.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}'
-                         "</div>")
-        if note:
-            parts.append(f"<p>{html.escape(note)}</p>")
+        parts.extend(_diagram_section(s))
         parts.append("<h2>Parameters as run</h2>")
         params = s.get("parameters")
         if isinstance(params, list):
@@ -200,13 +205,7 @@ def _sweep_extras(run_dir: str, has_run: bool) -> list:
         return [f"<p>{html.escape(f'no comparison of variants: {exc}')}</p>"]
     diagram = getattr(runs[0].result, "diagram_file", None)
     if diagram and not has_run:
-        svg, note = diagram_picture({"diagram": diagram})
-        out.append("<h2>Diagram</h2>")
-        if svg is not None:
-            out.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}'
-                       "</div>")
-        if note:
-            out.append(f"<p>{html.escape(note)}</p>")
+        out.extend(_diagram_section({"diagram": diagram}))
     picked = runs if len(runs) <= MAX_SWEEP_SHOWN else [
         runs[int(k)] for k in np.unique(np.linspace(0, len(runs) - 1, MAX_SWEEP_SHOWN)
                                         .astype(int))]
