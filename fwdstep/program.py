@@ -226,8 +226,9 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 call = "r"
             if len(op.outputs) == 1:
                 lines.append(f"{name[op.outputs[0]]} = {call}[0]")
-            elif call != "r":
-                lines.append(f"r = {call}")
+            else:
+                if call != "r":
+                    lines.append(f"r = {call}")
                 lines.extend(f"{name[idx]} = r[{k}]" for k, idx in enumerate(op.outputs))
             lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)
         return lines

@@ -282,3 +282,40 @@ def test_a_time_only_block_is_evaluated_once_per_stage_time(loop):
     n = d.spec.simulation.n_steps
     assert len(calls["arm"]) >= 4 * n                     # every stage
     assert 2 * n < len(calls["qd"]) <= 3 * n + 3          # stages 1, 2 and 4 (and the start)
+
+
+def test_a_time_only_block_with_several_unpacked_outputs(tmp_path):
+    """Each output of a reused (memoised) call is still named: a user's source returning a
+    tuple of two outputs (not packed) feeds two integrators, which give its integrals."""
+    plugin = tmp_path / "clock.py"
+    plugin.write_text('''
+import numpy as np
+from fwdstep.block import Block
+from fwdstep.registry import register
+
+
+def clock_output(t, x):
+    return (np.full((1, 1), t), np.full((1, 1), 2.0))
+
+
+@register
+class Clock(Block):
+    """Clock: a = t, b = 2.
+
+    Equation: a = t, b = 2.
+    """
+    params = {}
+
+    def setup(self):
+        self.declare_output("a", (1,))
+        self.declare_output("b", (1,))
+        self.set_kernels(output=clock_output)
+''')
+    path = tmp_path / "d.yaml"
+    path.write_text("blocks:\n  c: {type: Clock}\n  i: {type: Integrator, shape: [1]}\n"
+                    "  j: {type: Integrator, shape: [1]}\nconnections:\n  - c.a -> i.u\n"
+                    "  - c.b -> j.u\nsimulation: {t_final: 1.0, step: 0.01, solver: rk4}\n"
+                    "log: [i.y, j.y]\n")
+    r = fwdstep.simulate(fwdstep.load_diagram(str(path), plugins=[str(plugin)]))
+    np.testing.assert_allclose(r["i.y"][-1], [0.5], rtol=1e-12)
+    np.testing.assert_allclose(r["j.y"][-1], [2.0], rtol=1e-12)
