@@ -181,6 +181,12 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
 
     cells: dict = {}
 
+    def held() -> dict:
+        """Input signal -> memo cell of the time-only block producing it, for the blocks
+        whose cell exists (their value is reused while the stage time is unchanged)."""
+        return {idx: cells[id(op.block)] for idx, op in producer_call.items()
+                if id(op.block) in cells}
+
     def time_only(block) -> bool:
         """No inputs, no states: the outputs are a function of t alone (kernels are pure)."""
         return not block.inputs and not block.n_states
@@ -203,7 +209,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             if kind == "group":
                 g = groups[id(op)]
                 if op.outputs:
-                    lines.extend(g.code(src, buffer, plan, read, g.Y))
+                    lines.extend(g.code(src, buffer, plan, read, g.Y, held()))
                 continue
             blk = op.block
             if direct(blk, "output") and blk.kernels.packed:
@@ -251,7 +257,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             if derivative_group.outputs:          # dx came with the group's outputs
                 lines.append(f"{src.const('klin', kv)}[...] = {src.const('dx', g.dx)}")
             else:                                 # a product straight into k_i
-                lines.extend(g.code(src, buffer, plan, read, kv))
+                lines.extend(g.code(src, buffer, plan, read, kv, held()))
         return lines
 
     # ---------------------------------------------------------------- logging
@@ -360,15 +366,31 @@ class _GroupBuffers:
             name[idx] = src.const(f"y{idx}_", _view(self.Y[:, c:c + n], (B,) + shapes[idx]))
             c += n
         self.dx = self.Y[:, c:] if group.derivative else None
+        self.seen: dict = {}
 
-    def code(self, src: _Source, buffer, plan, read, out) -> list:
-        """Lines filling V (states from ``buffer``) and writing the product into ``out``."""
+    def code(self, src: _Source, buffer, plan, read, out, held=None) -> list:
+        """Lines filling V (states from ``buffer``) and writing the product into ``out``.
+        ``held``: input signal -> memo cell of the time-only block producing it; those
+        inputs are copied into V only when the cell holds a new value (RK4's stage 3 and the
+        next step's stage 1 reuse stage 2's and stage 4's: the copy would write the same
+        numbers again).  Only this group writes its V, so V still holds the last copy."""
         if not self.V.shape[1]:                     # every output is identically zero
             return []
-        lines = []
+        lines, by_cell = [], {}
         for term, view in self.inputs:
             value = src.const("xlin", buffer[:, plan.state]) if term == "x" else read(term)
-            lines.append(f"{src.const('v', view)}[...] = {value}")
+            line = f"{src.const('v', view)}[...] = {value}"
+            cell = (held or {}).get(term)
+            if cell is None:
+                lines.append(line)
+            else:
+                by_cell.setdefault(cell, []).append(line)
+        for cell, copies in by_cell.items():
+            if cell not in self.seen:           # the cell's value last copied into V
+                self.seen[cell] = src.const("seen", [None])
+            seen = self.seen[cell]
+            lines += [f"if {seen}[0] is not {cell}[1]:"] + ["    " + c for c in copies] + [
+                f"    {seen}[0] = {cell}[1]"]
         M = self.group.M
         if M.shape[0] == 1 and out.flags.c_contiguous:
             lines.append(f"dot({src.const('V', self.V)}, {src.const('M', M[0])}, "

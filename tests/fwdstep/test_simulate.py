@@ -319,3 +319,20 @@ class Clock(Block):
     r = fwdstep.simulate(fwdstep.load_diagram(str(path), plugins=[str(plugin)]))
     np.testing.assert_allclose(r["i.y"][-1], [0.5], rtol=1e-12)
     np.testing.assert_allclose(r["j.y"][-1], [2.0], rtol=1e-12)
+
+
+def test_a_reused_time_only_output_in_a_fused_product_is_the_current_one(tmp_path):
+    """A Sine feeding fused linear blocks is copied into the product's input buffer only when
+    it was evaluated again (RK4's stage 3 reuses stage 2's time); every stage must still see
+    the Sine at its own time: the logged gain output is 2 sin(3t) and the integral of it
+    matches the closed form to RK4's accuracy (a stale stage input would leave an O(h) error)."""
+    path = tmp_path / "d.yaml"
+    path.write_text("blocks:\n  w: {type: Sine, amplitude: [1.0], frequency: [3.0]}\n"
+                    "  g: {type: Gain, gain: 2}\n  i: {type: Integrator, shape: [1]}\n"
+                    "connections:\n  - w.y -> g.u\n  - g.y -> i.u\n"
+                    "simulation: {t_final: 2.0, step: 0.01, solver: rk4}\nlog: [g.y, i.y]\n")
+    d = fwdstep.load_diagram(str(path))
+    assert " is not memo" in build_program(d, n_rows=2).source     # the guarded copy is used
+    r = fwdstep.simulate(d)
+    np.testing.assert_allclose(r["g.y"][:, 0], 2 * np.sin(3 * r.t), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(r["i.y"][:, 0], 2 / 3 * (1 - np.cos(3 * r.t)), rtol=0, atol=1e-8)
