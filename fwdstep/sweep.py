@@ -76,7 +76,7 @@ from .budgets import BudgetError
 from .distributed import dask_client, local_cores, run_jobs
 from .errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
                      OutputError)
-from .result import atomic_write, error_metrics, safe_path
+from .result import atomic_write, batch_error_metrics, safe_path
 from .sampling import (MAX_VARIANTS, parse_grid, parse_random, split_values,  # noqa: F401
                        variant_seeds, variant_values)
 from .simulate import SimulationInterrupted, simulate
@@ -205,6 +205,9 @@ class BatchJob:
     traces: frozenset
     values: list                  # the swept values of each variant (for the parts)
     max_log_bytes: int | None = None   # fwdstep.simulate refuses a larger log (--max-memory)
+    # compiled backend: the batches differ in structure (sizes), so each runs the program
+    # whose sizes are run-time values (one compile for them all), not its own scalar code
+    sizes_at_run_time: bool = False
 
     def __getstate__(self) -> dict:
         """Sent to a worker without the blocks (they may hold unpicklable closures); the
@@ -368,6 +371,7 @@ def _run_members(job: BatchJob, members: list) -> list:
         return [{"status": "error", "message": str(exc), "diverged_at": None, "metrics": {}}]
     metric = job.metric
     d.logged = [d.resolve(metric)] if metric is not None else []
+    d.sizes_at_run_time = job.sizes_at_run_time
     try:
         r = simulate(d, max_log_bytes=job.max_log_bytes)
     except DivergenceError as exc:
@@ -382,6 +386,10 @@ def _run_members(job: BatchJob, members: list) -> list:
             return [o for k in members for o in _run_members(job, [k])]
         return [{"status": "error", "message": str(exc), "diverged_at": None, "metrics": {}}]
     tail = specs[0].metrics.get("tail", 0.2)
+    every = None                          # every variant's metrics, in a few NumPy calls
+    if metric is not None:
+        signal = r[d.resolve(metric)]
+        every = batch_error_metrics(r.t, signal[:, None] if d.batch == 1 else signal, tail)
     out = []
     for b, k in enumerate(members):
         o = {"status": "ok", "message": "", "diverged_at": None, "metrics": {}}
@@ -395,8 +403,8 @@ def _run_members(job: BatchJob, members: list) -> list:
             if o["status"] == "diverged":
                 keep = t < died
                 t, e = t[keep], e[keep]
-            else:
-                o["metrics"] = error_metrics(t, e, tail)
+            else:                        # the same numbers as error_metrics(t, e, tail)
+                o["metrics"] = every[b]
             if job.keep_signals or job.indices[k] in job.traces:
                 o.update(t=np.array(t), e=np.array(e))
         out.append(o)
@@ -504,12 +512,15 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
         if os.path.isdir(parts):
             shutil.rmtree(parts)
     jobs = []
+    structures = {structure_signature(blocks[members[0]]) for members in batches} \
+        if any(s.simulation.backend == "compiled" for s in specs) else set()
     for members in batches:
         todo = [i for i in members if i not in done]
         if todo:
             jobs.append(BatchJob(len(jobs), todo, [specs[i] for i in todo],
                                  [blocks[i] for i in todo], metric, keep_signals, trace_ids,
-                                 [all_values[i] for i in todo], parse_size(max_memory)))
+                                 [all_values[i] for i in todo], parse_size(max_memory),
+                                 len(structures) > 1))
     if done:
         first = max((v.batch for v in table if v.index in done), default=-1) + 1
         for job in jobs:

@@ -364,3 +364,30 @@ def test_backend_compiled_without_numba_is_one_line(path, tmp_path, monkeypatch,
                         "--backend numpy)")
     with pytest.raises(ConfigError, match="both swept and set"):
         run_sweep(path, grid={"simulation.backend": ["numpy"]}, backend="numpy")
+
+
+def test_batch_metrics_are_each_variants_own():
+    """A sweep computes the metrics of a whole batch at once (fwdstep.result.
+    batch_error_metrics): each variant's numbers are bit for bit those of its own
+    error_metrics call (the sums run over its own row of the batch), and error_metrics
+    agrees with the definitions computed plainly; NaN, inf and near-overflow errors too."""
+    from fwdstep.result import batch_error_metrics, error_metrics
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.random(1001))
+    e = rng.standard_normal((1001, 7, 2)) * 10.0 ** rng.integers(-5, 5, size=(1, 7, 1))
+    e[400:, 1] = np.nan                          # diverged
+    e[17, 2, 0] = np.inf
+    e[:, 3] = 1e308                              # a naive sum of squares overflows
+    batch = batch_error_metrics(t, e, 0.3)
+    for b in range(7):
+        alone = error_metrics(t, np.ascontiguousarray(e[:, b]), 0.3)
+        assert repr(batch[b]) == repr(alone)     # bit for bit (floats repr exactly)
+    norm = np.sqrt(np.sum(e[:, 0] ** 2, axis=1))
+    tail = t >= t[0] + 0.7 * (t[-1] - t[0])
+    np.testing.assert_allclose(
+        [batch[0][k] for k in ("final_error_norm", "tail_error_norm_max", "rms_error_norm",
+                               "error_norm_max", "tail_error_max_abs")],
+        [norm[-1], norm[tail].max(), np.sqrt(np.mean(norm ** 2)), norm.max(),
+         np.abs(e[tail, 0]).max()], rtol=1e-14)
+    assert np.isnan(batch[1]["rms_error_norm"]) and batch[2]["error_norm_max"] == np.inf
+    assert batch[3]["final_error_norm"] == pytest.approx(1e308 * np.sqrt(2), rel=1e-14)
