@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import difflib
+import functools
 import math
 from typing import Any, Mapping
 
@@ -173,8 +174,11 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
     if len(src) > MAX_EXPRESSION_LENGTH:
         raise ExpressionError(f"{what}: expression is {len(src)} characters long "
                               f"(limit {MAX_EXPRESSION_LENGTH})")
+    tree = _screened(src)                  # a sweep evaluates the same texts per variant
+    screened = tree is not None
     try:
-        tree = ast.parse(src, mode="eval")
+        if tree is None:
+            tree = ast.parse(src, mode="eval")
     except (SyntaxError, ValueError) as exc:
         hint = ""
         if src.count("(") > src.count(")") or src.count("[") > src.count("]"):
@@ -186,7 +190,8 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
         raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
     evaluator = _Evaluator(shown, namespace, what)
     try:
-        evaluator.screen(tree.body)
+        if not screened:
+            evaluator.screen(tree.body)    # raises the message
         body = tree.body
         if isinstance(body, ast.Name) and body.id in namespace:
             return namespace[body.id]     # a bare name passes any value on (a boolean flag)
@@ -194,6 +199,19 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
     except RecursionError:
         raise ExpressionError(f"{what}: expression '{shown[:60]}' is nested too deeply") from None
     return value
+
+
+@functools.lru_cache(maxsize=4096)
+def _screened(src: str):
+    """The parsed tree of ``src`` if it parses and passes ``_Evaluator.screen``, else None
+    (``evaluate`` then parses or screens it itself, which raises the message).  Trees are
+    only read, never changed, so one tree serves every evaluation of the same text."""
+    try:
+        tree = ast.parse(src, mode="eval")
+        _Evaluator(src, {}, "").screen(tree.body)
+    except Exception:  # noqa: BLE001 - evaluate's own path says what is wrong
+        return None
+    return tree
 
 
 class _Evaluator:
