@@ -175,16 +175,15 @@ def main(argv=None) -> int:
               f"{len(probe.batches)} batch(es); max |e_sweep - e_hand| = {diff:.2e}")
         walls = {"sweep": [], "hand": []}
         cpus = {"sweep": [], "hand": []}
-        for _ in range(args.repeats if "a" in parts else 0):                       # interleaved
-            w, c, _ = _timed(lambda: sweep(workers=1))
-            walls["sweep"].append(w)
-            cpus["sweep"].append(c)
-            w, c, _ = _timed(lambda: hand(probe))
-            walls["hand"].append(w)
-            cpus["hand"].append(c)
-            w, c = integrate(probe)
-            walls.setdefault("integrate", []).append(w)
-            cpus.setdefault("integrate", []).append(c)
+        runs = {"sweep": lambda: _timed(lambda: sweep(workers=1))[:2],
+                "hand": lambda: _timed(lambda: hand(probe))[:2],
+                "integrate": lambda: integrate(probe)}
+        for i in range(args.repeats if "a" in parts else 0):     # interleaved, the order
+            order = list(runs) if i % 2 == 0 else list(runs)[::-1]   # reversed every other
+            for name in order:                                   # repeat (load drifts)
+                w, c = runs[name]()
+                walls.setdefault(name, []).append(w)
+                cpus.setdefault(name, []).append(c)
         if "a" in parts:
             med = {k: float(np.median(v)) for k, v in walls.items()}
             cmed = {k: float(np.median(v)) for k, v in cpus.items()}
@@ -194,6 +193,11 @@ def main(argv=None) -> int:
             print(f"    of which integrating the batch (fwdstep.simulate alone) / hand: "
                   f"{med['integrate'] / med['hand']:.2f}x wall, "
                   f"{cmed['integrate'] / cmed['hand']:.2f}x cpu")
+            for name in ("sweep", "integrate"):   # each repeat against its own hand run
+                paired = np.array(cpus[name]) / np.array(cpus["hand"])
+                print(f"    {name} / hand, each repeat paired (cpu): median "
+                      f"{np.median(paired):.2f}x, range {paired.min():.2f}-{paired.max():.2f}")
+            print(f"    load average after: {os.getloadavg()[0]:.2f}")
         if "b" in parts:
             size = int(np.ceil(args.samples / args.batches))
             rates, split, machine = {}, [], {}
