@@ -1,0 +1,167 @@
+"""fwdstep.scalarize: kernels traced into scalar expressions (the compiled backend's scalar
+stages).  The traced graph is checked against the kernel itself run by NumPy, for every
+registered block whose kernels trace; the folds against IEEE arithmetic."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")             # the tracer runs fwdstep.compiled_ops' loops
+
+import fwdstep  # noqa: E402
+from fwdstep import scalarize as sz  # noqa: E402
+from fwdstep.registry import REGISTRY, load_library  # noqa: E402
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _leaves(tr, name, values, invariant=False):
+    """An object array of leaves carrying ``values`` (one variant); ``invariant``: a
+    parameter (branches on it take its value)."""
+    values = np.asarray(values, dtype=float)
+    out = np.empty(values.shape, dtype=object)
+    for idx in np.ndindex(*values.shape):
+        out[idx] = tr.leaf(f"{name}{'_'.join(map(str, idx))}", invariant, [values[idx]])
+    return out
+
+
+def _value(tr, node):
+    return float(np.asarray(tr.evaluate(tr.lift(node))).reshape(-1)[0])
+
+
+# ------------------------------------------------------------------------------- folds
+@pytest.mark.parametrize("a", [2.5, -0.0, 0.0, math.inf, -3e300])
+def test_folds_are_exact_where_the_docstring_says(a):
+    tr = sz.Trace()
+    x = tr.leaf("x", False, [a])
+    y = tr.leaf("y", False, [7.25])
+    for expr, want in ((x + 0.0, a + 0.0), (x - 0.0, a - 0.0), (x * 1.0, a * 1.0),
+                       (1.0 * x, 1.0 * a), (x / 1.0, a / 1.0), (x * -1.0, a * -1.0),
+                       (y + (-x), 7.25 + (-a)), (y - (-x), 7.25 - (-a))):
+        got = _value(tr, expr)
+        assert got == want or (math.isnan(got) and math.isnan(want))
+    assert (x * 0.0).op == "const"          # the one inexact fold: 0 * a = 0 (a finite)
+    assert (x * 1.0) is x and (x + 0.0) is x
+
+
+def test_common_subexpressions_are_one_node():
+    tr = sz.Trace()
+    x, y = tr.leaf("x", False), tr.leaf("y", False)
+    a = (x * y).sin()
+    b = (x * y).sin()
+    assert a is b and len(tr.nodes) == 4
+
+
+def test_a_branch_on_a_parameter_takes_its_value_and_a_branch_on_a_signal_is_refused():
+    tr = sz.Trace()
+    flag = tr.leaf("p0", True, [1.0, 1.0])
+    assert bool(flag != 0.0) is True
+    mixed = tr.leaf("p1", True, [0.0, 1.0])
+    with pytest.raises(sz.Untraceable, match="a branch depends on a parameter that differs "
+                                             "between variants"):
+        bool(mixed != 0.0)
+    x = tr.leaf("x", False)
+    with pytest.raises(sz.Untraceable, match="a branch depends on a signal or the state"):
+        bool(x > 0.0)
+
+
+def test_where_is_a_selection_and_writes_as_one():
+    tr = sz.Trace()
+    rb = sz.Rebinder(tr)
+
+    def kernel(t, u):
+        return np.where(u > 1.0, 2.0 * u, -u)
+
+    u = _leaves(tr, "u", [[0.5, 3.0]])
+    y = sz.run_traced(rb, kernel, 0.0, u)
+    assert [_value(tr, v) for v in y.reshape(-1)] == [-0.5, 6.0]
+    assert tr.expr(y[0, 0]).startswith("(") and " if " in tr.expr(y[0, 0])
+
+
+# ---------------------------------------------------------------- every block, traced
+load_library()
+from tests.blocks.test_contract import _compiled_kernel_names, _inputs, _make, _state  # noqa
+
+
+def _trace_block(blk, t, x, u):
+    """(outputs, derivative) of blk's kernels traced on leaves holding these values, each
+    evaluated from the graph; Untraceable when a kernel does not trace."""
+    tr = sz.Trace()
+    rb = sz.Rebinder(tr)
+    k = blk.kernels
+    xs = _leaves(tr, "x", x)
+    us = [_leaves(tr, f"u{j}_", a) for j, a in enumerate(u)]
+    args = []
+    for n in k.params:
+        args.append(_leaves(tr, f"p{n}_", np.asarray(getattr(blk.p, n), dtype=float)[:1],
+                            invariant=True))
+    args += list(k.static)
+    ins = (tuple(us),) if k.tuple_inputs else tuple(us)
+    ts = tr.leaf("ts", False, [t])
+    outs = der = None
+    if k.output is not None:
+        r = sz.run_traced(rb, k.output, ts, xs, *ins, *args)
+        if k.packed:
+            flat = sz.as_nodes(tr, r, (1, sum(p.size for p in blk.outputs.values())))
+            r = [flat[:, a:b].reshape((1,) + (p.shape if shape is not None else (b - a,)))
+                 for (a, b, shape), p in zip(blk._unpack, blk.outputs.values())]
+        outs = [np.vectorize(lambda s: _value(tr, s), otypes=[float])(
+            sz.as_nodes(tr, y, (1,) + port.shape)) for y, port in zip(r, blk.outputs.values())]
+    if blk.n_states and k.derivative is not None:
+        r = sz.run_traced(rb, k.derivative, ts, xs, *ins, *args)
+        der = np.vectorize(lambda s: _value(tr, s), otypes=[float])(
+            sz.as_nodes(tr, r, (1, blk.n_states)))
+    return outs, der
+
+
+TRACED: list = []
+
+
+@pytest.mark.parametrize("name", _compiled_kernel_names())
+def test_traced_kernels_equal_the_numpy_kernels(name):
+    """One definition, derived: the scalar code's graph, evaluated, gives the block's NumPy
+    outputs and derivative at random points (1e-12), or the kernel says it cannot be traced
+    (the compiled backend then runs its array code)."""
+    rng = np.random.default_rng(5)
+    blk = _make(name)
+    blk.finalize(1)
+    u = tuple(np.ascontiguousarray(a) for a in _inputs(blk, 1, rng))
+    x = _state(blk, 1, rng)
+    t = float(rng.uniform(0.0, 2.0))
+    try:
+        outs, der = _trace_block(blk, t, x, u)
+    except sz.Untraceable:
+        return
+    TRACED.append(name)
+    if outs is not None:
+        for got, ref in zip(outs, blk.output(t, x, u)):
+            ref = np.broadcast_to(ref, got.shape)
+            scale = max(1.0, float(np.max(np.abs(ref)))) if ref.size else 1.0
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * scale, err_msg=name)
+    if der is not None:
+        ref = blk.derivative(t, x, u)
+        scale = max(1.0, float(np.max(np.abs(ref))))
+        np.testing.assert_allclose(der, ref, rtol=0, atol=1e-12 * scale, err_msg=name)
+
+
+SPEED_CRITICAL = ["slotine_li", "theorem1", "theorem2", "theorem3", "theorem4", "theorem5",
+                  "theorem6", "theorem7", "theorem8", "theorem9", "pid_reformulated",
+                  "computed_torque"]
+
+
+@pytest.mark.parametrize("name", SPEED_CRITICAL)
+def test_the_theorem_diagrams_trace_to_scalar_stages(name):
+    """A change that made one of these untraceable would silently run it with the array
+    code (10x slower compiled): they must trace."""
+    from fwdstep import backend_numba as bn
+    from fwdstep.finite import unlogged_signals
+    d = fwdstep.load_diagram(os.path.join(ROOT, "diagrams", f"{name}.yaml"))
+    shapes = [tuple(s) for s in d.signal_shapes]
+    ops, fused = bn._ops_for(d.schedule, shapes, d.constant_signals)
+    st = bn._ScalarStage(d, shapes, ops, fused, d.constant_signals,
+                         [d.signal_index[n] for n in d.logged], unlogged_signals(d), 4)
+    assert st.n_nodes > 20
+    import llvmlite.binding as llvm
+    from fwdstep.llvm_stage import stage_ir
+    llvm.parse_assembly(stage_ir(st)).verify()   # valid LLVM IR
