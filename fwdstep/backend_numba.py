@@ -6,7 +6,20 @@ module (and ``fwdstep.compiled_ops`` / ``fwdstep.compiled_cache``) import numba,
 the compiled backend imports them.
 
 Nothing here restates a block's equations.  Each block declares its numerics once as
-kernels (``Block.set_kernels``, docs/writing-blocks.md); this module jits *those functions*
+kernels (``Block.set_kernels``, docs/writing-blocks.md).  Two ways to compile them:
+
+* **Scalar stages** (the default when every kernel traces): ``fwdstep.scalarize`` runs each
+  kernel once on symbols and ``_ScalarStage`` writes the stage as straight-line scalar
+  code (no array, no call inside), compiled as a numba ``cfunc``; the fixed-step loop is a
+  text shared by every structure (compiled once per machine and solver, cached), which
+  calls the stage through a function pointer.  A never-seen structure compiles only its
+  stage.  The code is written for the sizes and for the pattern of the parameter values
+  (which entries are 0, 1, -1 or equal), so another size or pattern is another stage.
+* **Array code** (``_Stage``), for kernels that cannot be traced (a branch on a signal,
+  complex numbers, a table lookup), object-mode blocks, and sweeps whose batches differ in
+  sizes (``CompiledDiagram.sizes_at_run_time``: one program for all their sizes).
+
+For the array code, this module jits *those functions*
 (``jit_kernel``: the helpers of ``fwdstep.kernelops`` they call are bound to their loops in
 ``fwdstep.compiled_ops``) and generates one Python module whose ``run_one`` is the
 fixed-step loop of ``fwdstep.simulate`` (procedure Step: outputs in schedule order, a
@@ -497,6 +510,193 @@ class _Stage:
         return lines
 
 
+class _ScalarStage:
+    """One stage as straight-line scalar code: every kernel traced once on symbols
+    (``fwdstep.scalarize``), every fused group written out entry by entry (the entries of M
+    that are zero in every variant left out).  Raises ``Untraceable`` when a kernel cannot
+    be traced or an object-mode block is present (the array code of ``_Stage`` is used then).
+
+    ``fwdstep.llvm_stage`` compiles it to a function that the loop (``_module_source``
+    without a ``_Stage``: one text for every structure, compiled once per machine and
+    solver and cached) calls through a function pointer.  The function works in a variant's
+    workspace ``ws`` = [x_i (N), k_1..k_S (S N), the variant's row of ``W`` (every parameter
+    entry is a column of W), Z (the nodes that depend on parameters only, computed once per
+    call of the loop: mode 3)]; logged signals are columns of one array ``LL`` (rows,
+    variants, columns) whose slices are the logs."""
+
+    def __init__(self, d, shapes, ops, fused, consts, logs, unlogged, n_stages):
+        from . import scalarize as sz
+        self.shapes = shapes
+        self.columns: list = []         # the values of W's columns over the variants
+        self._by_values: dict = {}
+        tr = self.tr = sz.Trace()
+        rb = sz.Rebinder(tr)
+        x = sz.sym_array(tr, (1, d.n_states), lambda idx: (f"x{idx[1]}", False))
+        ts = tr.leaf("ts", False)
+        sig = {idx: self._param(arr) for idx, arr in consts.items()}
+
+        def zeros(idx):
+            return sz.as_nodes(tr, 0.0, (1,) + shapes[idx])
+
+        def state(op):
+            if op.state is None:
+                return x[:, 0:0]
+            return x[:, op.state.start:op.state.stop]
+
+        block_args, group_y = {}, {}
+        for kind, op, _ in ops:
+            if kind == "call":
+                if _in_python(op.block):
+                    raise sz.Untraceable(f"block {op.block.name!r} runs in object mode")
+                k = op.block.kernels
+                block_args[id(op)] = [self._param(getattr(op.block.p, n))
+                                      for n in k.params] + list(k.static)
+
+        def call(fn, op, inputs):
+            if op.block.kernels.tuple_inputs:
+                inputs = [tuple(inputs)]
+            return sz.run_traced(rb, fn, ts, state(op), *inputs, *block_args[id(op)])
+
+        def group(op, owner, done):
+            v = []
+            for term, n in op.inputs:
+                if term == "x":
+                    v.extend(x[0, owner.state.start:owner.state.stop])
+                else:
+                    v.extend((sig[term] if term in done else zeros(term)).reshape(-1))
+            M = np.asarray(op.M, dtype=np.float64)
+            nz = np.any(M != 0.0, axis=0)
+            y = []
+            for j in range(M.shape[2]):
+                acc = None
+                for i in range(M.shape[1]):
+                    if nz[i, j]:
+                        term = v[i] * self._leaf(M[:, i, j])
+                        acc = term if acc is None else acc + term
+                y.append(tr.const(0.0) if acc is None else acc)
+            return y
+
+        # the output pass (a signal read before its producer ran is zero, as in _Stage)
+        done = set(sig)
+        for kind, op, owner in ops:
+            if kind == "group":
+                if op.outputs:
+                    y = group_y[id(op)] = group(op, owner, done)
+                    c = 0
+                    for idx, n in op.outputs:
+                        sig[idx] = np.array(y[c:c + n], dtype=object).reshape(
+                            (1,) + shapes[idx])
+                        c += n
+                    done.update(idx for idx, _ in op.outputs)
+                continue
+            k = op.block.kernels
+            if k.output is None:
+                continue
+            r = call(k.output, op, [sig[u] if u in done else zeros(u) for u in op.inputs])
+            if k.packed:
+                sizes = [int(np.prod(shapes[i], dtype=np.int64)) for i in op.outputs]
+                flat = sz.as_nodes(tr, r, (1, sum(sizes)))
+                c = 0
+                for idx, n in zip(op.outputs, sizes):
+                    sig[idx] = flat[:, c:c + n].reshape((1,) + shapes[idx])
+                    c += n
+            else:
+                if len(r) != len(op.outputs):
+                    raise sz.Untraceable(f"{len(r)} outputs where {len(op.outputs)} declared")
+                for j, idx in enumerate(op.outputs):
+                    sig[idx] = sz.as_nodes(tr, r[j], (1,) + shapes[idx])
+            done.update(op.outputs)
+        # the derivative pass: (state index, node)
+        der = []
+        everything = set(range(len(shapes)))
+        for kind, op, owner in ops:
+            if kind == "group":
+                if not op.derivative:
+                    continue
+                sl = owner.state
+                if op.outputs:
+                    y, c = group_y[id(op)], sum(n for _, n in op.outputs)
+                else:
+                    y, c = group(op, owner, everything), 0
+                der += [(sl.start + i, y[c + i]) for i in range(sl.stop - sl.start)]
+                continue
+            blk = op.block
+            if op.state is None or blk.name in fused:
+                continue
+            r = call(blk.kernels.derivative, op, [sig[u] for u in op.inputs])
+            n = op.state.stop - op.state.start
+            dx = sz.as_nodes(tr, r, (1, n))
+            der += [(op.state.start + i, dx[0, i]) for i in range(n)]
+        # records: logged signals (columns of LL) and the finite checks of the others
+        self.records, self.checked, roots = [], [], []
+        self.log_columns = []
+        col = 0
+        for idx in logs:
+            self.log_columns.append(col)
+            for pos in np.ndindex(*shapes[idx]):
+                node = sig[idx][(0,) + pos]
+                roots.append(node)
+                self.records.append((col, node))
+                col += 1
+        self.log_width = col
+        for idx in unlogged:
+            nodes = [n for n in sig[idx].reshape(-1) if n.op != "const"]
+            roots += nodes
+            self.checked += nodes
+        self.der = der
+        need_d = tr.needed([node for _, node in der])
+        need_r = tr.needed(roots) - need_d
+        inv = sorted(n for n in need_d | need_r if tr.nodes[n].invariant)
+        self.inv, self.n_invariants = inv, len(inv)
+        self.need_d = sorted(need_d - set(inv))
+        self.need_r = sorted(need_r - set(inv))
+        self.n_nodes = len(need_d | need_r)
+        W = np.empty((max([len(c) for c in self.columns] + [1]), len(self.columns)))
+        for j, c in enumerate(self.columns):
+            W[:, j] = c
+        self.W = W
+        # the workspace ws of a variant: x_i (N), k_1..k_S (S N), W's row, Z
+        self.n_states = d.n_states
+        self.n_columns = len(self.columns)
+        self.ow = d.n_states + n_stages * d.n_states
+        self.oz = self.ow + self.n_columns
+
+    def _leaf(self, values):
+        """A parameter entry with these values over the variants: a column of W, loaded
+        into a leaf.  The code is written for the pattern of the values (as it is for the
+        zeros of a fused M): an entry that is 0, 1 or -1 in every variant is that constant
+        (so 0 * a and 1 * a fold away), and entries equal to each other in every variant
+        are one leaf (a Sine's frequency repeated for each derivative is one sin).  Another
+        pattern writes other code, hence another cached stage."""
+        from . import scalarize as sz
+        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        first = float(values[0])
+        if first in (0.0, 1.0, -1.0) and np.all(values == first):
+            return self.tr.const(first)
+        key = values.tobytes()
+        if key in self._by_values and not np.isnan(values).any():
+            return self._by_values[key]
+        if len(self.columns) >= MAX_SCALAR_PARAMS:
+            raise sz.Untraceable(f"more than {MAX_SCALAR_PARAMS} parameter entries")
+        j = len(self.columns)
+        self.columns.append(values)
+        node = self._by_values[key] = self.tr.leaf(f"p{j}", True, values)
+        return node
+
+    def _param(self, arr):
+        """A parameter (or constant signal) array (Bp, *shape) as an object array
+        (1, *shape) of leaves."""
+        arr = np.asarray(arr, dtype=np.float64)
+        out = np.empty((1,) + arr.shape[1:], dtype=object)
+        for idx in np.ndindex(*arr.shape[1:]):
+            out[(0,) + idx] = self._leaf(arr[(slice(None),) + idx])
+        return out
+
+
+#: Diagrams with more parameter entries than this keep the array code (their scalar code
+#: would be long to compile).
+MAX_SCALAR_PARAMS = 4096
+
 def _ops_for(schedule, shapes, consts):
     """The evaluation ops: the fusion plan's, with linear blocks the plan left alone (too
     large to fuse together) as groups of their own."""
@@ -530,9 +730,12 @@ def check_compilable(d) -> None:
 class CompiledProgram:
     """The run functions of one diagram (any batch size), with their buffers."""
 
-    def __init__(self, module, args, xn, X, K, logs, t_log, consts, batch, events):
+    def __init__(self, module, args, xn, X, K, logs, t_log, consts, batch, events,
+                 call_logs=None):
         self.module, self.args, self.xn, self.X, self.K = module, args, xn, X, K
         self.logs, self.t_log, self.consts, self.batch = logs, t_log, consts, batch
+        # the log arrays the loop writes (scalar stages: one array whose slices are logs)
+        self.call_logs = logs if call_logs is None else call_logs
         self.I = consts["I"]
         # (ev_n, ev_off, ev_t, ev_r) and the Event of each row of ev_t: see event_arrays
         self.events, self.row_events = events
@@ -555,7 +758,7 @@ class CompiledProgram:
         """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged / 2 an output not finite /
         3 paused for discrete updates (``event_arrays``), next step, next row)."""
         out = self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
-                                  *self.logs)
+                                  *self.call_logs)
         self._first_call_sealed()
         self._check_python()
         return out
@@ -563,7 +766,7 @@ class CompiledProgram:
     def run_batch(self, n0: int, n1: int, rows, status, n_next, alive) -> None:
         """Every alive variant, steps n0..n1-1, in parallel; updates rows/status/n_next."""
         self.module.run_all(n0, n1, rows, status, n_next, alive, *self._fixed(), *self.args,
-                            *self.logs)
+                            *self.call_logs)
         self._first_call_sealed()
         self._check_python()
 
@@ -584,7 +787,14 @@ class CompiledProgram:
             self.run_batch(0, 0, z, z.copy(), z.copy(), np.ones(B, dtype=bool))
 
     def seal(self) -> None:
-        """Record the hashes of the machine code numba just cached (see compiled_cache)."""
+        """Record the hashes of the machine code numba just cached (see compiled_cache).
+        A scalar stage and its loop have one signature each: sealed once per process."""
+        if isinstance(self.module, _ScalarModule):
+            if not self.module.sealed:
+                self.module.sealed = True
+                for module in self.module.modules:
+                    compiled_cache.seal(module)
+            return
         compiled_cache.seal(self.module)
         seal_kernels()
 
@@ -594,18 +804,99 @@ class CompiledProgram:
         Returns 2 if an unrecorded output is not finite there, else 0."""
         n = int(round(t / self.consts["h"]))
         out = self.module.run_one(v, n, n + 1, row, True, *self._fixed(), *self.args,
-                                  *self.logs)[0]
+                                  *self.call_logs)[0]
         self._check_python()
         return out
 
 
-def build_program(d, n_rows: int, plan=None) -> CompiledProgram:
+_traced: dict = {}
+
+
+def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
+    """The ``_ScalarStage`` of a diagram, or None when it cannot be traced; memoised in
+    the process by everything the trace reads (kernels, static values, parameter values,
+    wiring, shapes), so running a diagram again does not trace it again."""
+    from .scalarize import Untraceable
+    h = hashlib.sha256(repr((d.n_states, S, logged, unlogged, sorted(fused), shapes,
+                             sorted(d.constant_signals))).encode())
+    for arr in d.constant_signals.values():
+        h.update(repr(np.shape(arr)).encode() + np.ascontiguousarray(arr, dtype=float).data)
+    fns = []                # held by the memo: their ids are not reused meanwhile
+    for kind, op, owner in ops:
+        if kind == "group":
+            h.update(repr(("g", op.inputs, op.outputs, op.derivative, op.M.shape,
+                           owner.state)).encode())
+            h.update(np.ascontiguousarray(op.M, dtype=float).data)
+            continue
+        blk, k = op.block, op.block.kernels
+        fns.append(k)
+        h.update(repr(("c", blk.name, type(blk).__qualname__, _in_python(blk),
+                       None if k is None else (id(k.output), id(k.derivative), k.params,
+                                               k.static, k.packed, k.tuple_inputs),
+                       op.inputs, op.outputs, op.state)).encode())
+        for name in (k.params if k is not None else ()):
+            arr = np.ascontiguousarray(getattr(blk.p, name), dtype=float)
+            h.update(repr(arr.shape).encode() + arr.data)
+    key = h.digest()
+    if key not in _traced:
+        try:
+            st = _ScalarStage(d, shapes, ops, fused, d.constant_signals, logged, unlogged, S)
+        except Untraceable:
+            st = None
+        _traced[key] = (fns, st)
+        while len(_traced) > 64:
+            _traced.pop(next(iter(_traced)))
+    return _traced[key][1]
+
+
+class _ScalarModule:
+    """The run functions of a scalar stage: the cached loop module's ``run_one`` and
+    ``run_all`` with the stage's machine code (``fwdstep.llvm_stage``, compiled on the first
+    call: ``CompiledProgram.compile`` runs under deferred signals) as first argument."""
+
+    def __init__(self, loop, st):
+        self.loop, self.st, self.modules = loop, st, (loop,)
+        self.__file__ = getattr(loop, "__file__", None)
+        self._fn = None
+
+    @property
+    def sealed(self) -> bool:
+        return self.loop.__name__ in _sealed_loops
+
+    @sealed.setter
+    def sealed(self, value: bool) -> None:
+        _sealed_loops.add(self.loop.__name__)
+
+    def _stage(self):
+        if self._fn is None:
+            from .llvm_stage import compile_stage
+            self._fn = compile_stage(self.st)
+        return self._fn
+
+    def run_one(self, *args):
+        return self.loop.run_one(self._stage(), *args)
+
+    def run_all(self, *args):
+        return self.loop.run_all(self._stage(), *args)
+
+
+#: names of the loop modules whose numba files were sealed in this process (one signature
+#: each: nothing new is written after their first call)
+_sealed_loops: set = set()
+
+
+def build_program(d, n_rows: int, plan=None, scalar: bool | None = None) -> CompiledProgram:
     """Generate, load (from the cache when possible) and bind the compiled run of ``d``;
     ``plan``: its ``fwdstep.events.plan_events`` (None: no declared times), whose split
-    steps the loop runs as the NumPy path does (``event_arrays``)."""
+    steps the loop runs as the NumPy path does (``event_arrays``).  ``scalar``: trace the
+    kernels into scalar code (``_ScalarStage``; the default unless ``d.sizes_at_run_time``)
+    when every kernel can be traced, else (or False) the array code of ``_Stage``, whose
+    sizes are run-time values."""
     check_compilable(d)
+    if scalar is None:
+        scalar = not d.sizes_at_run_time
     with _per_variant_kernels(d):
-        return _build_program(d, n_rows, plan)
+        return _build_program(d, n_rows, plan, scalar)
 
 
 @contextlib.contextmanager
@@ -632,33 +923,54 @@ def _per_variant_kernels(d):
             blk.kernels = kernels
 
 
-def _build_program(d, n_rows: int, plan) -> CompiledProgram:
+def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
     B, N, S = d.batch, d.n_states, tab.stages
-    gen = _Gen()
     shapes = [tuple(s) for s in d.signal_shapes]
     ops, fused = _ops_for(d.schedule, shapes, d.constant_signals)
-    st = _Stage(gen, shapes, ops, fused, d.constant_signals)
-    logs, record = [], []
-    for k, name in enumerate(d.logged):
-        idx = d.signal_index[name]
-        logs.append(np.full((n_rows, B) + shapes[idx], np.nan))
-        record.append(f"_rec(L{k}, row, v, s{idx})")
     from .finite import unlogged_signals      # every other output: finite, or status 2
-    record += [f"if not _finite(s{idx}): return 2, n, row + 1" for idx in unlogged_signals(d)]
-    log_names = [f"L{k}" for k in range(len(logs))]
-    # one stage, written once, inside a loop over the stages (stage 1 reads a copy of x_n):
-    # a quarter of the code numba must type and optimise for RK4
-    stage_out = st.outputs("X2", "ts")
-    stage_der = st.derivatives("X2", "ts", "K2, stg")
+    logged = [d.signal_index[name] for name in d.logged]
+    st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
+        else None
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
         final = f"({final} + bw[{m}] * K2[{j}, i])"
-    source = _module_source(gen, st, log_names, record, stage_out, stage_der, final)
-    module = compiled_cache.load(source)
-    args = [v for _, v in gen.args]
+    if st is not None:
+        # the loop (fixed text: compiled once per machine and solver, then cached) calls
+        # the stage (compiled per structure) through a function pointer
+        call = "stage({}, ts, stg, (row * B_ + vi) * width, wsp, Lp)"
+        record = [f"if {call.format('2 if final else 1')} != 0: return 2, n, row + 1"]
+        stage_der = ["if not (stg == 0 and q == q0 and (n % every == 0 or final)):",
+                     "    " + call.format("0")]
+        gen = _Gen()
+        skeleton = compiled_cache.load(_module_source(gen, None, [], record, [], stage_der,
+                                                      final))
+        module = _ScalarModule(skeleton, st)
+        LL = np.full((n_rows, B, max(st.log_width, 1)), np.nan)
+        logs = []
+        for idx, col in zip(logged, st.log_columns):
+            size = int(np.prod(shapes[idx], dtype=np.int64))
+            view = LL[:, :, col:col + size].reshape((n_rows, B) + shapes[idx])
+            assert np.shares_memory(view, LL)
+            logs.append(view)
+        args, call_logs = [st.W, st.n_invariants, LL.shape[2]], [LL.reshape(-1)]
+    else:
+        logs = [np.full((n_rows, B) + shapes[idx], np.nan) for idx in logged]
+        log_names = [f"L{k}" for k in range(len(logs))]
+        gen = _Gen()
+        st = _Stage(gen, shapes, ops, fused, d.constant_signals)
+        record = [f"_rec(L{k}, row, v, s{idx})" for k, idx in enumerate(logged)]
+        record += [f"if not _finite(s{idx}): return 2, n, row + 1"
+                   for idx in unlogged_signals(d)]
+        # one stage, written once, inside a loop over the stages (stage 1 reads a copy of
+        # x_n): a quarter of the code numba must type and optimise for RK4
+        stage_out = st.outputs("X2", "ts")
+        stage_der = st.derivatives("X2", "ts", "K2, stg")
+        source = _module_source(gen, st, log_names, record, stage_out, stage_der, final)
+        module = compiled_cache.load(source)
+        args, call_logs = [v for _, v in gen.args], logs
     a = np.zeros((S, S))
     for s, (_, coeffs) in enumerate(stages, start=1):
         for j, val in coeffs:
@@ -674,7 +986,7 @@ def _build_program(d, n_rows: int, plan) -> CompiledProgram:
     xn, X = np.zeros((B, N)), np.zeros((B, N))
     K = np.zeros((B, S, N))
     prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B,
-                           event_arrays(plan, cfg.n_steps, cfg.step, B))
+                           event_arrays(plan, cfg.n_steps, cfg.step, B), call_logs)
     if gen.python:                  # blocks called in object mode: the program's handle
         from . import python_blocks
         handle, prog.python = python_blocks.register(prog, gen.python, B)
@@ -724,16 +1036,42 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
     fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t, ev_r"
-    picks = [f"{n} = _pick({n}, v)" for n in arg_names if n.startswith("P")]
-    helpers = set().union(*(jit_kernel(globals()[h])[1] for h in _HELPERS), _ops_digests())
-    digests = [f"# {part}" for part in sorted(gen.files | helpers)]
     import numba
-    out = ["# fwdstep compiled program (generated; see fwdstep/backend_numba.py)",
-           f"# numba {numba.__version__}", *digests,
-           "import math", "import numpy as np", "from numba import njit, prange",
-           "from fwdstep.backend_numba import kernel as _kernel",
-           *[f"{h} = _kernel('fwdstep.backend_numba', {h!r})" for h in _HELPERS],
-           *gen.imports, *_PYTHON_HEADER * bool(gen.python), "CACHE = True", "", ""]
+    fn_arg = ""
+    if st is None:
+        # the loop of scalar stages (_ScalarStage): the same text for every structure; the
+        # stage comes in as a function pointer, its numbers in W (variant v's row), its
+        # parameter-only nodes in Z, its records in LL
+        fn_arg = "stage, "
+        a_list = ", W, nZ, width, LL"
+        prologue = ["S = a.shape[0]", "NW = W.shape[1]",
+                    "ws = np.empty(N + S * N + NW + nZ)",
+                    # (not W[v if ... else 0]: prange's v is unsigned, and numba unifies
+                    # uint64 with int64 to float64)
+                    "Wv = W[0] if W.shape[0] == 1 else W[v]",
+                    "for i in range(NW):", "    ws[N + S * N + i] = Wv[i]",
+                    "vi = np.int64(v)", "B_ = np.int64(xn.shape[0])",
+                    "wsp = ws.ctypes.data", "Lp = LL.ctypes.data",
+                    "stage(3, 0.0, 0, 0, wsp, Lp)",
+                    "Xv = ws[0:N]", "K2 = ws[N:N + S * N].reshape((S, N))"]
+        out = ["# fwdstep compiled loop of scalar stages (generated; see "
+               "fwdstep/backend_numba.py)", f"# numba {numba.__version__}",
+               "import math", "import numpy as np", "from numba import njit, prange",
+               "CACHE = True", "", ""]
+        one = "@njit(cache=CACHE)"
+    else:
+        picks = [f"{n} = _pick({n}, v)" for n in arg_names if n.startswith("P")]
+        prologue = picks + [line for lines in st.prologue.values() for line in lines]
+        helpers = set().union(*(jit_kernel(globals()[h])[1] for h in _HELPERS),
+                              _ops_digests())
+        digests = [f"# {part}" for part in sorted(gen.files | helpers)]
+        out = ["# fwdstep compiled program (generated; see fwdstep/backend_numba.py)",
+               f"# numba {numba.__version__}", *digests,
+               "import math", "import numpy as np", "from numba import njit, prange",
+               "from fwdstep.backend_numba import kernel as _kernel",
+               *[f"{h} = _kernel('fwdstep.backend_numba', {h!r})" for h in _HELPERS],
+               *gen.imports, *_PYTHON_HEADER * bool(gen.python), "CACHE = True", "", ""]
+        one = "@njit(cache=CACHE)"
 
     def fn(header, body, decorator="@njit(cache=CACHE)"):
         out.append(decorator)
@@ -741,9 +1079,9 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
         out.extend("    " + line for line in body)
         out.extend(["", ""])
 
-    run_body = picks + [line for lines in st.prologue.values() for line in lines] + [
+    run_body = [
         "N = xn.shape[1]",
-        "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]",
+        "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]"] + prologue + [
         "AW = np.empty_like(a)", "BW = np.empty_like(b)",
         "p = np.searchsorted(ev_n, n0)",
         "for n in range(n0, n1):",
@@ -787,15 +1125,15 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
     run_body += ["    for q in range(qs, q1):"] + ["        " + line for line in inner]
     run_body += ["    if bad:", "        return 1, n + 1, row"]
     run_body.append("return 0, n1, row")
-    fn(f"def run_one(v, n0, n1, row, final, {fixed}{a_list}):", run_body)
+    fn(f"def run_one({fn_arg}v, n0, n1, row, final, {fixed}{a_list}):", run_body, one)
     # with object-mode blocks the variants run one after another: their calls hold the GIL,
     # and prange threads contending for it made 8 Panda variants 4.7x the NumPy batch's
     # time, against 2.0x in sequence (fwdstep/python_blocks.py)
     loop = "range" if gen.python else "prange"
-    fn(f"def run_all(n0, n1, rows, status, n_next, alive, {fixed}{a_list}):",
+    fn(f"def run_all({fn_arg}n0, n1, rows, status, n_next, alive, {fixed}{a_list}):",
        [f"for v in {loop}(rows.shape[0]):",
         "    if alive[v]:",
-        f"        st, nn, r = run_one(v, n0, n1, rows[v], False, {fixed}{a_list})",
+        f"        st, nn, r = run_one({fn_arg}v, n0, n1, rows[v], False, {fixed}{a_list})",
         "        status[v] = st", "        n_next[v] = nn", "        rows[v] = r",
         "        if st:", "            alive[v] = False"],
        "@njit(cache=CACHE)" if gen.python else "@njit(cache=CACHE, parallel=True)")

@@ -48,6 +48,9 @@ class CompiledDiagram:
     constant_signals: dict           # index -> array (zeros of unconnected optional inputs)
     logged: list                     # signal names to record
     variant_parameters: list = field(default_factory=list)   # one dict per batch member
+    # compiled backend: keep sizes as run-time values (a sweep whose batches differ only in
+    # sizes compiles one program) instead of unrolled scalar code for these sizes
+    sizes_at_run_time: bool = False
 
     @property
     def blocks(self) -> list:

@@ -135,10 +135,18 @@ def test_a_block_without_kernel_is_refused(tmp_path):
 def test_generated_module_is_cached_by_structure(loop):
     """Parameters are arguments: another gain reuses the same generated module."""
     from fwdstep import backend_numba
+    from fwdstep.llvm_stage import stage_ir
     a = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 4}), 10)
     b = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 7}), 10)
-    assert a.module is b.module
+    # the loop is one cached module; the stage's code is the same text (alpha is in W)
+    assert a.module.loop is b.module.loop and stage_ir(a.module.st) == stage_ir(b.module.st)
+    assert not np.array_equal(a.args[0], b.args[0])
     assert os.path.dirname(a.module.__file__) == os.environ["FWDSTEP_CACHE_DIR"]
+    # the array code (sizes at run time): one generated module for both
+    da, db = (fwdstep.load_diagram(loop, {"alpha": v}) for v in (4, 7))
+    da.sizes_at_run_time = db.sizes_at_run_time = True
+    a, b = backend_numba.build_program(da, 10), backend_numba.build_program(db, 10)
+    assert a.module is b.module
 
 
 def test_a_block_may_declare_why_it_cannot_run_compiled(tmp_path):
@@ -188,7 +196,8 @@ def test_batched_compiled_run_equals_one_by_one_runs(loop):
 
 def test_a_sweep_over_ell_generates_one_program(monkeypatch):
     """Sizes are run-time values: ell = 1..10 of Theorem 1 is one generated module (one
-    compile), not ten."""
+    compile), not ten, when the diagram asks for it (a sweep whose batches differ in
+    structure does: see the next test); a single run gets scalar code for its sizes."""
     import hashlib
     from fwdstep import backend_numba
     seen = []
@@ -197,8 +206,33 @@ def test_a_sweep_over_ell_generates_one_program(monkeypatch):
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     for ell in range(1, 11):
         d = fwdstep.load_diagram(os.path.join(root, "diagrams", "theorem1.yaml"), {"ell": ell})
+        d.sizes_at_run_time = True
         backend_numba.build_program(d, 5)
     assert len(seen) == 10 and len(set(seen)) == 1
+
+
+def test_a_compiled_sweep_over_sizes_asks_for_run_time_sizes(monkeypatch):
+    """A compiled sweep whose batches differ in structure (ell = 1, 2, 3) runs them all with
+    the one program of run-time sizes; a sweep over numbers only (one structure) keeps the
+    scalar code.  (The runs here are NumPy-path runs: only the request is checked.)"""
+    from fwdstep import sweep as sw
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    path = os.path.join(root, "diagrams", "theorem1.yaml")
+    seen = []
+    real = sw.simulate
+
+    def spy(d, **kw):
+        seen.append((d.n_states, d.sizes_at_run_time))
+        return real(d, backend="numpy", **kw)
+
+    monkeypatch.setattr(sw, "simulate", spy)
+    sw.run_sweep(path, grid={"ell": [1, 2, 3]}, overrides={"t_final": 0.05},
+                 backend="compiled")
+    assert len({n for n, _ in seen}) == 3 and all(flag for _, flag in seen)
+    seen.clear()
+    sw.run_sweep(path, grid={"alpha": [3.0, 4.0]}, overrides={"t_final": 0.05},
+                 backend="compiled")
+    assert seen and not any(flag for _, flag in seen)
 
 
 def test_a_batch_compiles_the_kernels_of_one_variant_and_restores_the_batch_ones():
