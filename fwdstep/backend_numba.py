@@ -851,13 +851,14 @@ def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
 
 class _ScalarModule:
     """The run functions of a scalar stage: the cached loop module's ``run_one`` and
-    ``run_all`` with the stage's machine code (``fwdstep.llvm_stage``, compiled on the first
-    call: ``CompiledProgram.compile`` runs under deferred signals) as first argument."""
+    ``run_all`` (numba compiles or loads them on the first call: ``CompiledProgram.compile``
+    runs under deferred signals) with the stage's machine code (``fwdstep.llvm_stage``) as
+    first argument."""
 
-    def __init__(self, loop, st):
+    def __init__(self, loop, st, fn):
         self.loop, self.st, self.modules = loop, st, (loop,)
         self.__file__ = getattr(loop, "__file__", None)
-        self._fn = None
+        self._fn = fn
 
     @property
     def sealed(self) -> bool:
@@ -867,17 +868,11 @@ class _ScalarModule:
     def sealed(self, value: bool) -> None:
         _sealed_loops.add(self.loop.__name__)
 
-    def _stage(self):
-        if self._fn is None:
-            from .llvm_stage import compile_stage
-            self._fn = compile_stage(self.st)
-        return self._fn
-
     def run_one(self, *args):
-        return self.loop.run_one(self._stage(), *args)
+        return self.loop.run_one(self._fn, *args)
 
     def run_all(self, *args):
-        return self.loop.run_all(self._stage(), *args)
+        return self.loop.run_all(self._fn, *args)
 
 
 #: names of the loop modules whose numba files were sealed in this process (one signature
@@ -934,6 +929,15 @@ def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
     logged = [d.signal_index[name] for name in d.logged]
     st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
         else None
+    stage_fn = None
+    if st is not None:
+        from .llvm_stage import compile_stage
+        try:
+            stage_fn = compile_stage(st)
+        except Exception as exc:  # noqa: BLE001 - an LLVM fault falls back, never stops a run
+            compiled_cache.warn(f"scalar stage not compiled ({type(exc).__name__}: "
+                                f"{exc}"[:200] + "); running the array code")
+            st = None
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
         final = f"({final} + bw[{m}] * K2[{j}, i])"
@@ -947,7 +951,7 @@ def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
         gen = _Gen()
         skeleton = compiled_cache.load(_module_source(gen, None, [], record, [], stage_der,
                                                       final))
-        module = _ScalarModule(skeleton, st)
+        module = _ScalarModule(skeleton, st, stage_fn)
         LL = np.full((n_rows, B, max(st.log_width, 1)), np.nan)
         logs = []
         for idx, col in zip(logged, st.log_columns):
