@@ -184,6 +184,16 @@ class Doubler(Block):
     seen = []
     monkeypatch.setattr(backend_numba.compiled_cache, "load",
                         lambda source: seen.append(source) or None)
+    from fwdstep.llvm_stage import stage_ir
+    stages = []
+    real = backend_numba._scalar_stage
+
+    def spy(*args):
+        st = real(*args)
+        stages.append(stage_ir(st))
+        return None                                # then the array code (cached on disk)
+
+    monkeypatch.setattr(backend_numba, "_scalar_stage", spy)
     d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
     backend_numba.build_program(d, 5)
     plugin.write_text(body.replace("FACTOR = 2.0", "FACTOR = 3.0"))
@@ -194,6 +204,11 @@ class Doubler(Block):
     backend_numba.build_program(d, 5)
     changed = [a for a, b in zip(seen[0].splitlines(), seen[2].splitlines()) if a != b]
     assert len(changed) == 1 and ".doubler_output " in changed[0], changed
+    # the scalar stage (traced from the kernel in memory, never cached on disk) follows the
+    # loaded code too: 2 u, 2 u, then 3 u
+    two, three = "0x4000000000000000", "0x4008000000000000"
+    assert [two in ir and three not in ir for ir in stages] == [True, True, False]
+    assert three in stages[2]
 
 
 def test_a_kernel_digest_follows_its_code_and_frozen_globals_not_its_comments(tmp_path,
