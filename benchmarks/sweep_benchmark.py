@@ -197,7 +197,10 @@ def main(argv=None) -> int:
                 paired = np.array(cpus[name]) / np.array(cpus["hand"])
                 print(f"    {name} / hand, each repeat paired (cpu): median "
                       f"{np.median(paired):.2f}x, range {paired.min():.2f}-{paired.max():.2f}")
-            print(f"    load average after: {os.getloadavg()[0]:.2f}")
+            print(f"    least disturbed repeats (minimum cpu of each): sweep / hand "
+                  f"{min(cpus['sweep']) / min(cpus['hand']):.2f}x, integrate / hand "
+                  f"{min(cpus['integrate']) / min(cpus['hand']):.2f}x; load average after: "
+                  f"{os.getloadavg()[0]:.2f}")
         if "b" in parts:
             size = int(np.ceil(args.samples / args.batches))
             rates, split, machine = {}, [], {}
