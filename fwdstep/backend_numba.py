@@ -9,10 +9,11 @@ Nothing here restates a block's equations.  Each block declares its numerics onc
 kernels (``Block.set_kernels``, docs/writing-blocks.md).  Two ways to compile them:
 
 * **Scalar stages** (the default when every kernel traces): ``fwdstep.scalarize`` runs each
-  kernel once on symbols and ``_ScalarStage`` writes the stage as straight-line scalar
-  code (no array, no call inside), compiled as a numba ``cfunc``; the fixed-step loop is a
-  text shared by every structure (compiled once per machine and solver, cached), which
-  calls the stage through a function pointer.  A never-seen structure compiles only its
+  kernel once on symbols and ``_ScalarStage`` holds the stage as straight-line scalar
+  code (no array, no call inside), which ``fwdstep.llvm_stage`` compiles with LLVM in a
+  fraction of a second; the fixed-step loop is a text shared by every structure (numba,
+  compiled once per machine and solver, cached), which calls the stage through a function
+  pointer.  A never-seen structure compiles only its
   stage.  The code is written for the sizes and for the pattern of the parameter values
   (which entries are 0, 1, -1 or equal), so another size or pattern is another stage.
 * **Array code** (``_Stage``), for kernels that cannot be traced (a branch on a signal,
