@@ -444,13 +444,23 @@ def _simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
             error.signum = getattr(exc, "signum", 2)
         except SimulationError as exc:    # an object-mode block's error: already says where
             status, message, error = "error", str(exc), exc
+            row = _rows_recorded(prog.t_log, rows, row)
         except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
             error = _locate_failure(d, t, x.copy(), exc)
             error.__cause__ = exc
             status, message = "error", str(error)
+            row = _rows_recorded(prog.t_log, rows, row)
     prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
                    x, n, t, wall0, reasons)
+
+
+def _rows_recorded(t_log, rows, row: int) -> int:
+    """The rows a compiled chunk recorded before an exception left it: its loop could not
+    return its row count, but each record wrote its time into t_log (NaN before), so the
+    rows of the interrupted chunk are kept (a batch's loop updated ``rows`` itself)."""
+    written = int(np.argmax(np.isnan(t_log))) if np.isnan(t_log).any() else len(t_log)
+    return max(row, int(rows.max()), written)
 
 
 def _sampler(d: CompiledDiagram, events, x):

@@ -266,6 +266,20 @@ def test_a_failure_inside_the_compiled_batch_names_block_time_and_variant(leak):
 
 
 @pytest.mark.slow
+def test_the_rows_before_an_object_mode_failure_are_kept(leak):
+    """The failing chunk's rows (t = 0 .. 0.05 here, all in one chunk) are in the result, as
+    on the NumPy path: the loop could not return its row count when the block raised."""
+    results = {}
+    for backend in ("numpy", "compiled"):
+        with pytest.raises(BlockRuntimeError) as info:
+            fwdstep.simulate(fwdstep.load_diagram(leak, {"fail_at": 0.05}), backend=backend)
+        results[backend] = info.value.result
+    ref, got = results["numpy"], results["compiled"]
+    assert len(ref.t) >= 5 and np.array_equal(got.t, ref.t), (got.t, ref.t)
+    _assert_close(got, ref)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("robot", ["panda", "ur5"])
 def test_a_robot_batch_equals_one_by_one_compiled_runs(robot):
     """The pinocchio blocks in a compiled batch (variants in sequence): each variant of
