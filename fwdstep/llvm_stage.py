@@ -31,7 +31,7 @@ SIGNATURE = types.int64(types.int64, types.float64, types.int64, types.int64, ty
 _UNARY = {"sin": "llvm.sin.f64", "cos": "llvm.cos.f64", "exp": "llvm.exp.f64",
           "log": "llvm.log.f64", "sqrt": "llvm.sqrt.f64", "abs": "llvm.fabs.f64",
           "tan": "tan", "tanh": "tanh", "sinh": "sinh", "cosh": "cosh", "atan": "atan",
-          "asin": "asin", "acos": "acos"}
+          "asin": "asin", "acos": "acos", "floor": "llvm.floor.f64"}
 _ARITH = {"+": "fadd", "-": "fsub", "*": "fmul", "/": "fdiv"}
 _CMP = {"<": "olt", "<=": "ole", ">": "ogt", ">=": "oge", "==": "oeq", "!=": "une"}
 _INF = "0x7FF0000000000000"
@@ -83,6 +83,14 @@ class _Block:
         if op in _CMP:
             self.names[node.n] = (self.emit(f"fcmp {_CMP[op]} double {self.value(a[0])}, "
                                             f"{self.value(a[1])}"), "i1")
+            return
+        if op in ("&", "|"):
+            self.names[node.n] = (self.emit(f"{'and' if op == '&' else 'or'} i1 "
+                                            f"{self.value(a[0], 'i1')}, "
+                                            f"{self.value(a[1], 'i1')}"), "i1")
+            return
+        if op == "!":
+            self.names[node.n] = (self.emit(f"xor i1 {self.value(a[0], 'i1')}, true"), "i1")
             return
         if op == "?":
             c, x, y = self.value(a[0], "i1"), self.value(a[1]), self.value(a[2])

@@ -110,6 +110,20 @@ class Sym:
 
     __hash__ = object.__hash__
 
+    # logic on comparisons (np.where's conditions: (k >= 0) & (t < rise + w)) ------------
+    def __and__(self, o):
+        return self.trace.logic("&", self, o)
+
+    __rand__ = __and__
+
+    def __or__(self, o):
+        return self.trace.logic("|", self, o)
+
+    __ror__ = __or__
+
+    def __invert__(self):
+        return self.trace.logic("!", self, True)
+
     def __bool__(self):
         return bool(self.trace.fixed(self, "a branch"))
 
@@ -167,6 +181,17 @@ class Sym:
     def absolute(self):
         return self.trace.unary("abs", self)
 
+    def floor(self):
+        return self.trace.unary("floor", self)
+
+    __floor__ = floor
+
+    def sign(self):
+        """NumPy's sign: 1, -1, 0 for +-0, NaN for NaN."""
+        t = self.trace
+        return t.select(t.binary(">", self, 0.0), 1.0, t.select(
+            t.binary("<", self, 0.0), -1.0, t.select(t.binary("==", self, self), 0.0, self)))
+
     def square(self):
         return self.trace.binary("*", self, self)
 
@@ -181,15 +206,19 @@ _EVAL = {"+": operator.add, "-": operator.sub, "*": operator.mul}
 _UNARY = {"sin": "math.sin", "cos": "math.cos", "tan": "math.tan", "exp": "math.exp",
           "log": "math.log", "sqrt": "math.sqrt", "tanh": "math.tanh", "sinh": "math.sinh",
           "cosh": "math.cosh", "atan": "math.atan", "asin": "math.asin", "acos": "math.acos",
-          "abs": "abs"}
+          "abs": "abs", "floor": "math.floor"}
 _BINARY = {"+", "-", "*", "/", "**", "<", "<=", ">", ">=", "==", "!="}
+#: nodes whose value is a condition (LLVM i1)
+_CONDITIONS = {"<", "<=", ">", ">=", "==", "!=", "&", "|", "!"}
 _NUMPY_BINARY = {"+": np.add, "-": np.subtract, "*": np.multiply, "/": np.divide,
                  "**": np.power, "<": np.less, "<=": np.less_equal, ">": np.greater,
                  ">=": np.greater_equal, "==": np.equal, "!=": np.not_equal,
                  "atan2": np.arctan2}
 _NUMPY_UNARY = {"sin": np.sin, "cos": np.cos, "tan": np.tan, "exp": np.exp, "log": np.log,
                 "sqrt": np.sqrt, "tanh": np.tanh, "sinh": np.sinh, "cosh": np.cosh,
-                "atan": np.arctan, "asin": np.arcsin, "acos": np.arccos, "abs": np.abs}
+                "atan": np.arctan, "asin": np.arcsin, "acos": np.arccos, "abs": np.abs,
+                "floor": np.floor}
+_NUMPY_LOGIC = {"&": np.logical_and, "|": np.logical_or}
 
 
 class Trace:
@@ -267,6 +296,10 @@ class Trace:
             with np.errstate(all="ignore"):
                 if s.op == "?":
                     out = np.where(a[0], a[1], a[2])
+                elif s.op == "!":
+                    out = np.logical_not(a[0])
+                elif s.op in _NUMPY_LOGIC:
+                    out = _NUMPY_LOGIC[s.op](a[0], a[1])
                 elif s.op == "-" and len(a) == 1:
                     out = -a[0]
                 elif s.op in _NUMPY_BINARY:
@@ -327,6 +360,26 @@ class Trace:
             return a.args[0]
         return self._node(op, (a,), None, a.invariant)
 
+    def logic(self, op, a, b):
+        """a and b, a or b, not a ("!", b ignored) of conditions (comparisons or flags)."""
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return NotImplemented
+        a, b = self.lift(a), self.lift(b)
+        va, vb = self.value(a), self.value(b)
+        if op == "!":
+            return self.const(float(not va)) if va is not None else \
+                self._node("!", (a,), None, a.invariant)
+        if va is not None and vb is not None:
+            return self.const(float(bool(va) and bool(vb) if op == "&"
+                                    else bool(va) or bool(vb)))
+        for c, other in ((va, b), (vb, a)):
+            if c is not None:
+                if (op == "&") == bool(c):       # True & x, False | x: x
+                    return self.logic("|", other, False) if other.op not in _CONDITIONS \
+                        else other
+                return self.const(float(op == "|"))
+        return self._node(op, (a, b), None, a.invariant and b.invariant)
+
     def select(self, c, a, b):
         c, a, b = self.lift(c), self.lift(a), self.lift(b)
         if c.op == "const":
@@ -357,6 +410,10 @@ class Trace:
         a = [self.name(x) for x in s.args]
         if s.op == "?":
             return f"({a[1]} if {a[0]} else {a[2]})"
+        if s.op == "!":
+            return f"(not {a[0]})"
+        if s.op in ("&", "|"):
+            return f"({a[0]} {'and' if s.op == '&' else 'or'} {a[1]})"
         if s.op == "atan2":
             return f"math.atan2({a[0]}, {a[1]})"
         if s.op == "-" and len(a) == 1:
@@ -486,7 +543,10 @@ class _NumpyShim(types.SimpleNamespace):
         self.minimum = np.frompyfunc(lambda a, b: t.select(t.binary("<", b, a), b, a), 2, 1)
         self.maximum = np.frompyfunc(lambda a, b: t.select(t.binary(">", b, a), b, a), 2, 1)
         self.clip = lambda a, lo, hi: self.minimum(self.maximum(a, lo), hi)
-        for bad in ("isfinite", "isnan", "isinf", "sign", "floor", "ceil", "round", "mod",
+        # (NumPy's own loops for object arrays compare with bool() or call math.floor)
+        self.floor = np.frompyfunc(lambda v: t.unary("floor", v), 1, 1)
+        self.sign = np.frompyfunc(lambda v: t.lift(v).sign(), 1, 1)
+        for bad in ("isfinite", "isnan", "isinf", "ceil", "round", "mod",
                     "remainder", "fmod", "linalg", "einsum", "searchsorted", "interp",
                     "random", "argmax", "argmin", "sort", "argsort", "nonzero"):
             setattr(self, bad, _refuse(f"np.{bad}"))
@@ -507,11 +567,11 @@ def _math_shim(trace: Trace):
     for name, op in (("sin", "sin"), ("cos", "cos"), ("tan", "tan"), ("exp", "exp"),
                      ("log", "log"), ("sqrt", "sqrt"), ("tanh", "tanh"), ("sinh", "sinh"),
                      ("cosh", "cosh"), ("atan", "atan"), ("asin", "asin"), ("acos", "acos"),
-                     ("fabs", "abs")):
+                     ("fabs", "abs"), ("floor", "floor")):
         setattr(m, name, (lambda op: lambda v: trace.unary(op, v))(op))
     m.atan2 = lambda a, b: trace.binary("atan2", a, b)
     m.pow = lambda a, b: trace.binary("**", a, b)
-    for bad in ("isfinite", "isnan", "isinf", "floor", "ceil", "fmod", "copysign"):
+    for bad in ("isfinite", "isnan", "isinf", "ceil", "fmod", "copysign"):
         setattr(m, bad, _refuse(f"math.{bad}"))
     return m
 

@@ -255,3 +255,48 @@ def test_a_batch_compiles_the_kernels_of_one_variant_and_restores_the_batch_ones
         assert Y.kernels.output is robot.regressor_output
     assert arm.kernels.derivative is robot.two_link_derivative_batch
     assert Y.kernels.output is robot.regressor_output_batch
+
+
+NONLINEAR = """
+parameters: {Fc: [0.5, 0.3]}
+blocks:
+  pulse: {type: Pulse, high: [1.0, 2.0], low: -0.5, period: 0.2, width: 0.05, delay: 0.1}
+  step:  {type: Step, after: [1.0, 2.0], before: 0.5, time: [0.1, 0.2]}
+  arm:   {type: TwoLinkArm, q0: [0.1, -0.2]}
+  fr:    {type: Friction, n: 2, coulomb: Fc, viscous: 0.2, velocity_scale: 0.0}
+  sat:   {type: Saturation, lower: [-1.0, -2.0], upper: [1.0, 0.5]}
+  dz:    {type: DeadZone, lower: -0.5, upper: [0.5, 1.0]}
+  sum:   {type: Sum, signs: "+++-"}
+  K:     {type: Gain, gain: 5}
+connections:
+  - pulse.y -> sum.u1
+  - step.y -> sum.u2
+  - fr.tau_f -> sum.u3
+  - arm.qdot -> fr.qdot
+  - arm.q -> K.u
+  - K.y -> dz.u
+  - dz.y -> sum.u4
+  - sum.y -> sat.u
+  - sat.y -> arm.tau
+simulation: {t_final: 1, step: 0.001, solver: rk4}
+log: [sat.y, arm.q, fr.tau_f, pulse.y, step.y]
+"""
+
+
+@pytest.mark.slow
+def test_switching_blocks_run_as_scalar_stages_with_the_numpy_paths_numbers(tmp_path):
+    """Pulse (floor, and of comparisons), Step, Friction (sign), Saturation and DeadZone
+    (selections) trace to scalar code, and the run gives the NumPy path's numbers."""
+    from fwdstep import backend_numba
+    path = tmp_path / "switching.yaml"
+    path.write_text(NONLINEAR)
+    d = fwdstep.load_diagram(str(path))
+    assert type(backend_numba.build_program(d, 3).module).__name__ == "_ScalarModule"
+    ref = fwdstep.simulate(d)
+    got = fwdstep.simulate(d, backend="compiled")
+    np.testing.assert_array_equal(got.t, ref.t)
+    assert float(np.max(np.abs(np.diff(ref["sat.y"], axis=0)))) > 0.5     # it switches
+    for name in ref.names:
+        scale = max(1.0, float(np.max(np.abs(ref[name]))))
+        np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale,
+                                   err_msg=name)

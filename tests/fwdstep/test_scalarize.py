@@ -197,13 +197,15 @@ def test_the_llvm_stage_computes_every_operation_as_python_does():
     exprs = [x0.tan(), x0.tanh(), tr.binary("atan2", x0, x1), x0.sinh(), x0.cosh(),
              x0.arctan(), (x0 * 0.5).arcsin(), (x0 * 0.5).arccos(), x0 ** p0,
              tr.select(x0 > x1, x0, x1), abs(-x1), x0.exp(), x0.log(), x0.sqrt(),
-             x0.sin() + x1.cos(), x0 / x1 - x1 * p0, (x0 < x1) * p0, -x0]
+             x0.sin() + x1.cos(), x0 / x1 - x1 * p0, (x0 < x1) * p0, -x0,
+             (x1 * 7.0).floor(), (-x1).sign(), tr.select((x0 < x1) & (x1 < p0), 1.0, 2.0),
+             tr.select((x0 > x1) | (x1 > p0), 1.0, 2.0), tr.select(~(x0 < x1), 1.0, 2.0)]
     st, f = _stage(exprs)
     a, b, p = 0.3, 0.9, 0.7
     want = [math.tan(a), math.tanh(a), math.atan2(a, b), math.sinh(a), math.cosh(a),
             math.atan(a), math.asin(a * 0.5), math.acos(a * 0.5), a ** p, max(a, b), b,
             math.exp(a), math.log(a), math.sqrt(a), math.sin(a) + math.cos(b),
-            a / b - b * p, p, -a]
+            a / b - b * p, p, -a, math.floor(b * 7.0), -1.0, 2.0, 1.0, 2.0]
     n = len(exprs)
     ws = np.zeros(st.oz + 1)
     ws[0], ws[1], ws[st.ow] = a, b, p
