@@ -231,4 +231,6 @@ def compile_stage(st) -> CompiledStage:
         engine = llvm.create_mcjit_compiler(mod, tm)
         engine.finalize_object()
         _compiled[key] = CompiledStage(engine, engine.get_function_address("stage"))
+        while len(_compiled) > 256:     # a program holds its own stage (and its engine)
+            _compiled.pop(next(iter(_compiled)))
     return _compiled[key]
