@@ -300,3 +300,23 @@ def test_switching_blocks_run_as_scalar_stages_with_the_numpy_paths_numbers(tmp_
         scale = max(1.0, float(np.max(np.abs(ref[name]))))
         np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale,
                                    err_msg=name)
+
+
+@pytest.mark.slow
+def test_an_llvm_fault_warns_once_and_runs_the_array_code(loop, monkeypatch, capsys):
+    from fwdstep import backend_numba, llvm_stage
+
+    def broken(st):
+        raise RuntimeError("LLVM ERROR: no target")
+
+    monkeypatch.setattr(llvm_stage, "compile_stage", broken)
+    d = fwdstep.load_diagram(loop)
+    got = fwdstep.simulate(d, backend="compiled")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fwdstep: warning: scalar stage not compiled (RuntimeError: LLVM ERROR: no "
+                   "target); running the array code"]
+    assert type(backend_numba.build_program(d, 3).module).__name__ != "_ScalarModule"
+    ref = fwdstep.simulate(d)
+    for name in ref.names:
+        scale = max(1.0, float(np.max(np.abs(ref[name]))))
+        np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale)
