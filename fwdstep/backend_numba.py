@@ -1084,11 +1084,14 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
         out.extend("    " + line for line in body)
         out.extend(["", ""])
 
-    run_body = [
-        "N = xn.shape[1]",
-        "xv = xn[v]", "X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]"] + prologue + [
-        "AW = np.empty_like(a)", "BW = np.empty_like(b)",
-        "p = np.searchsorted(ev_n, n0)",
+    views = [] if st is None else ["X2 = X[v:v + 1]", "Xv = X[v]", "K2 = K[v]"]
+    # (a loop, not np.searchsorted, and np.empty, not np.empty_like: their implementations
+    # cost numba ~1 s to compile, once per machine)
+    run_body = ["N = xn.shape[1]", "xv = xn[v]"] + views + prologue + [
+        "AW = np.empty((a.shape[0], a.shape[1]))", "BW = np.empty(b.shape[0])",
+        "p = 0",
+        "while p < ev_n.shape[0] and ev_n[p] < n0:",
+        "    p += 1",
         "for n in range(n0, n1):",
         "    t = n * h",
         # a grid step split at declared discontinuity times (fwdstep.events): sub-steps
@@ -1097,7 +1100,7 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
         "    if p < ev_n.shape[0] and ev_n[p] == n:",
         "        q0, q1, split = ev_off[p], ev_off[p + 1], True",
         "        p += 1",
-        "    ta, hs, lo, hi = t, h, -np.inf, np.inf",
+        "    ta, hs, lo, hi = t, h, -math.inf, math.inf",
         "    bad = False",
         "    qs = q0",                    # resuming at the row whose updates were applied
         "    if split and ev_r[v] >= q0 and ev_r[v] < q1:",
