@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import shutil
 import tempfile
 import time
 
@@ -139,8 +140,11 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="a,b", help="which of (a), (b) to run: a, b or a,b")
     args = ap.parse_args(argv)
     text = open(SLOTINE).read()
-    fd, path = tempfile.mkstemp(suffix=".yaml", dir=os.path.dirname(SLOTINE))
-    with os.fdopen(fd, "w") as fh:
+    # a copy in a private folder, never next to the shipped diagrams (tests that list
+    # diagrams/*.yaml while a benchmark runs would find it, then lose it)
+    folder = tempfile.mkdtemp(prefix="fwdstep-sweep-benchmark-")
+    path = os.path.join(folder, os.path.basename(SLOTINE))
+    with open(path, "w") as fh:
         fh.write(text)
     try:
         over = {"t_final": args.t_final}
@@ -230,7 +234,7 @@ def main(argv=None) -> int:
                   f"{parallel:.2f} s in the workers: on 2 free cores at most "
                   f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
     finally:
-        os.unlink(path)
+        shutil.rmtree(folder, ignore_errors=True)
     return 0
 
 
