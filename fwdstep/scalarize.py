@@ -627,19 +627,12 @@ class Rebinder:
         new = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__,
                                  fn.__closure__)
         self.done[fn] = new
+        from .backend_numba import _global_names      # (the names jit_kernel rebinds)
         for name in _global_names(fn.__code__):
             if name in g:
                 g[name] = self.value(g[name])
         g["float"] = _float
         return new
-
-
-def _global_names(code) -> set:
-    names = set(code.co_names)
-    for c in code.co_consts:
-        if isinstance(c, types.CodeType):
-            names |= _global_names(c)
-    return names
 
 
 def run_traced(rebinder: Rebinder, fn, *args):
