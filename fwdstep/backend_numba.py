@@ -13,9 +13,9 @@ kernels (``Block.set_kernels``, docs/writing-blocks.md).  Two ways to compile th
   code (no array, no call inside), which ``fwdstep.llvm_stage`` compiles with LLVM in a
   fraction of a second; the fixed-step loop is a text shared by every structure (numba,
   compiled once per machine and solver, cached), which calls the stage through a function
-  pointer.  A never-seen structure compiles only its
-  stage.  The code is written for the sizes and for the pattern of the parameter values
-  (which entries are 0, 1, -1 or equal), so another size or pattern is another stage.
+  pointer.  A never-seen structure compiles only its stage.  The code is written for the
+  sizes and for the pattern of the parameter values (which entries are 0, 1, -1 or
+  equal), so another size or pattern is another stage.
 * **Array code** (``_Stage``), for kernels that cannot be traced (a branch on a signal,
   complex numbers, a table lookup), object-mode blocks, and sweeps whose batches differ in
   sizes (``CompiledDiagram.sizes_at_run_time``: one program for all their sizes).
@@ -527,7 +527,6 @@ class _ScalarStage:
 
     def __init__(self, d, shapes, ops, fused, consts, logs, unlogged, n_stages):
         from . import scalarize as sz
-        self.shapes = shapes
         self.columns: list = []         # the values of W's columns over the variants
         self._by_values: dict = {}
         tr = self.tr = sz.Trace()
@@ -698,6 +697,7 @@ class _ScalarStage:
 #: would be long to compile).
 MAX_SCALAR_PARAMS = 4096
 
+
 def _ops_for(schedule, shapes, consts):
     """The evaluation ops: the fusion plan's, with linear blocks the plan left alone (too
     large to fuse together) as groups of their own."""
@@ -791,10 +791,10 @@ class CompiledProgram:
         """Record the hashes of the machine code numba just cached (see compiled_cache).
         A scalar stage and its loop have one signature each: sealed once per process."""
         if isinstance(self.module, _ScalarModule):
-            if not self.module.sealed:
-                self.module.sealed = True
-                for module in self.module.modules:
-                    compiled_cache.seal(module)
+            loop = self.module.loop
+            if loop.__name__ not in _sealed_loops:
+                _sealed_loops.add(loop.__name__)
+                compiled_cache.seal(loop)
             return
         compiled_cache.seal(self.module)
         seal_kernels()
@@ -857,17 +857,8 @@ class _ScalarModule:
     first argument."""
 
     def __init__(self, loop, st, fn):
-        self.loop, self.st, self.modules = loop, st, (loop,)
+        self.loop, self.st, self._fn = loop, st, fn
         self.__file__ = getattr(loop, "__file__", None)
-        self._fn = fn
-
-    @property
-    def sealed(self) -> bool:
-        return self.loop.__name__ in _sealed_loops
-
-    @sealed.setter
-    def sealed(self, value: bool) -> None:
-        _sealed_loops.add(self.loop.__name__)
 
     def run_one(self, *args):
         return self.loop.run_one(self._fn, *args)

@@ -9,8 +9,9 @@ array with the signal's shape) instead of numbers, with ``np`` and ``math`` in i
 replaced by shims that build expressions, and the kernels of ``fwdstep.kernelops`` replaced by
 their loop twins of ``fwdstep.compiled_ops`` (run as plain Python).  What comes out is the
 expression graph of every output and derivative entry, one node per arithmetic operation,
-common subexpressions shared (hash-consing).  ``Trace.lines`` writes it as straight-line
-Python that numba compiles to code with no array and no call.
+common subexpressions shared (hash-consing).  ``fwdstep.llvm_stage`` compiles it, one LLVM
+instruction per node, to straight-line code with no array and no call (``Trace.expr``
+writes a node as Python text, to read it).
 
 A kernel whose control flow depends on a value (a comparison used as a flag, a pivoted
 solve, ``float()`` of a symbol the shims do not cover, an unknown NumPy function) cannot be
@@ -386,7 +387,7 @@ class Trace:
             return a if self.value(c) else b
         return self._node("?", (c, a, b), None, c.invariant and a.invariant and b.invariant)
 
-    # ---------------------------------------------------------------------- writing code
+    # ------------------------------------------------------------------ reading the graph
     @staticmethod
     def _literal(v: float) -> str:
         if math.isnan(v):
@@ -432,10 +433,6 @@ class Trace:
             seen.add(s.n)
             todo.extend(s.args)
         return seen
-
-    def lines(self, numbers) -> list:
-        """``e<n> = ...`` for the given node numbers, in creation order."""
-        return [f"e{n} = {self.expr(self.nodes[n])}" for n in sorted(numbers)]
 
 
 # ---------------------------------------------------------------------- symbolic arrays
