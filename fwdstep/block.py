@@ -91,7 +91,7 @@ class Port:
 
     @property
     def size(self) -> int:
-        return int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
+        return math.prod(self.shape)            # Python ints: exact at any size
 
 
 @dataclass(frozen=True)
@@ -163,8 +163,7 @@ class Block:
         """Declare ports, states and parameters from the validated ``params``."""
 
     def declare_input(self, name: str, shape=(), optional: bool = False) -> None:
-        self.inputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
-                                 if shape != () else (), optional)
+        self.inputs[name] = Port(name, _port_shape(shape), optional)
 
     def declare_output(self, name: str, shape=(), feedthrough=None, label: str | None = None,
                        unit: str = "", components=None) -> None:
@@ -172,8 +171,7 @@ class Block:
         (``()`` = depends on state and time only).  ``label`` (mathtext allowed), ``unit`` and
         ``components`` (one name per element) are the defaults figures use for this output;
         a diagram's ``log:``/``plots:`` entries override them."""
-        self.outputs[name] = Port(name, tuple(int(s) for s in np.atleast_1d(shape))
-                                  if shape != () else ())
+        self.outputs[name] = Port(name, _port_shape(shape))
         self._feedthrough[name] = None if feedthrough is None else tuple(feedthrough)
         if label is not None or unit or components is not None:
             self.output_info[name] = {"label": label, "unit": unit,
@@ -332,6 +330,13 @@ class Block:
         return out
 
 
+def _port_shape(shape) -> tuple:
+    """A declared shape as a tuple of ints: ``()``, a number or a sequence of numbers."""
+    if type(shape) is tuple and all(type(s) is int for s in shape):
+        return shape                                       # the common case, as given
+    return tuple(int(s) for s in np.atleast_1d(shape)) if shape != () else ()
+
+
 def as_written(value: Any):
     """A value as a user would have written it in YAML, for messages: whole numbers without
     '.0', lists as lists, None as null, booleans as true/false."""
@@ -381,7 +386,7 @@ def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
         arr = np.asarray(value, dtype=float)
     except (ValueError, TypeError):
         raise bad("a number or a rectangular array of numbers") from None
-    if not np.all(np.isfinite(arr)):
+    if not (math.isfinite(arr) if arr.ndim == 0 else np.isfinite(arr).all()):
         raise bad("finite")
     if kind == "float":
         if arr.ndim != 0:

@@ -185,8 +185,20 @@ def stack_blocks(variants: list) -> list:
     return stacked
 
 
+#: exact types whose key is (type name, value) (the last line of ``_value_key``), looked up
+#: first: most values are these
+_PLAIN_KEYS = frozenset({float, int, bool, str, type(None)})
+
+
 def _value_key(value):
     """A hashable key equal for equal parameter values (type, shape and every number)."""
+    kind = type(value)
+    if kind in _PLAIN_KEYS:
+        return (kind.__name__, value)
+    if kind is tuple:
+        return ("tuple", tuple(_value_key(v) for v in value))
+    if kind is dict:
+        return ("dict", tuple((k, _value_key(v)) for k, v in value.items()))
     if isinstance(value, np.ndarray):
         return ("ndarray", value.shape, value.dtype.str, value.tobytes())
     if isinstance(value, dict):

@@ -24,7 +24,6 @@ error message.  The blocks built for the shape check are kept in ``made`` (the c
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import os
 
@@ -48,6 +47,7 @@ class VariantSpecs:
         self.base = load_spec(self.path, self.overrides, cache=self.cache)
         self.made: dict = {}                      # instantiate_variants' cache of built blocks
         self._base_blocks: dict = {}
+        self._base_keys: dict = {}
         self.derived = 0                          # how many specs were derived (not loaded)
         self._fast = False
         try:
@@ -132,8 +132,8 @@ class VariantSpecs:
                 spec, rebuilt = derived
                 if not blocks:
                     return spec, None
-                return spec, [self.block(k, entry) if k in rebuilt else self._base_block(k)
-                              for k, entry in enumerate(spec.blocks)]
+                return spec, [self.block(k, entry, rebuilt[k]) if k in rebuilt else
+                              self._base_block(k) for k, entry in enumerate(spec.blocks)]
         spec = load_spec(self.path, {**self.overrides, **values}, cache=self.cache)
         if not blocks:
             return spec, None
@@ -142,7 +142,7 @@ class VariantSpecs:
 
     def _base_block(self, k: int):
         if k not in self._base_blocks:
-            self._base_blocks[k] = self.block(k, self.base.blocks[k])
+            self._base_blocks[k] = self.block(k, self.base.blocks[k], self._base_key(k))
         return self._base_blocks[k]
 
     def _derive(self, values: dict):
@@ -168,15 +168,14 @@ class VariantSpecs:
         if vsim or affected & self.sim_names:
             sim = _simulation(self._sim_doc({**self.base_sim, **vsim}), ns, self.path)
         else:                                  # the same settings, its own object
-            sim = copy.copy(base.simulation)
+            sim = _shallow(base.simulation)
         paths = {**self.base_paths, **vpaths}
         touched = {p[0] for p in vpaths}
         level = self._level(ns)
-        entries, rebuilt = [], set()
+        entries, rebuilt = [], {}                 # rebuilt: position -> its value key
         for k, entry in enumerate(base.blocks):
             if entry.name not in touched and not (self.block_names[entry.name] & affected):
-                kept = object.__new__(type(entry))   # a shallow copy (copy.copy: 5x slower,
-                kept.__dict__.update(entry.__dict__)  # dataclasses.replace runs __init__)
+                kept = _shallow(entry)
                 kept.params = dict(entry.params)
                 entries.append(kept)
                 continue
@@ -187,11 +186,11 @@ class VariantSpecs:
             for key, value in entry.params.items():      # the shapes inference filled in
                 if key not in self.raw_keys[entry.name]:
                     new.params[key] = value
-            if _value_key(new.params) != _value_key(entry.params) and not self._same_ports(
-                    k, entry, new):
+            key = _value_key(new.params)
+            if key != self._base_key(k) and not self._same_ports(k, entry, new, key):
                 return None
             entries.append(new)
-            rebuilt.add(k)
+            rebuilt[k] = key
         return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim), rebuilt
 
     def _sim_doc(self, sim_overrides: dict):
@@ -207,20 +206,38 @@ class VariantSpecs:
         doc["simulation"] = merged
         return doc
 
-    def block(self, k: int, entry):
-        """The built block of ``entry`` (position ``k``), shared through ``made``."""
-        key = (k, entry.name, entry.cls, _value_key(entry.params))
+    def block(self, k: int, entry, value_key=None):
+        """The built block of ``entry`` (position ``k``), shared through ``made``;
+        ``value_key``: ``_value_key(entry.params)`` if the caller has it."""
+        if value_key is None:
+            value_key = _value_key(entry.params)
+        key = (k, entry.name, entry.cls, value_key)
         blk = self.made.get(key)
         if blk is None:
             blk = self.made[key] = _instantiate_one(entry)
         return blk
 
-    def _same_ports(self, k: int, old, new) -> bool:
-        a, b = self.block(k, old), self.block(k, new)
+    def _base_key(self, k: int):
+        """``_value_key`` of the base's block ``k``'s parameters (computed once)."""
+        key = self._base_keys.get(k)
+        if key is None:
+            key = self._base_keys[k] = _value_key(self.base.blocks[k].params)
+        return key
+
+    def _same_ports(self, k: int, old, new, new_key) -> bool:
+        a, b = self.block(k, old, self._base_key(k)), self.block(k, new, new_key)
         return ({n: p.shape for n, p in a.inputs.items()} ==
                 {n: p.shape for n, p in b.inputs.items()} and
                 {n: p.shape for n, p in a.outputs.items()} ==
                 {n: p.shape for n, p in b.outputs.items()})
+
+
+def _shallow(obj):
+    """A shallow copy of a plain object (``copy.copy`` is 5x slower, ``dataclasses.replace``
+    runs ``__init__``)."""
+    out = object.__new__(type(obj))
+    out.__dict__.update(obj.__dict__)
+    return out
 
 
 __all__ = ["VariantSpecs"]
