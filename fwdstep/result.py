@@ -261,13 +261,15 @@ def batch_error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> list
         "rms_error_norm": rms,
         "error_norm_max": np.max(norm, axis=0),
     }
+    columns = {k: v.tolist() for k, v in columns.items()}     # Python floats, same numbers
+    components = by_component.tolist()
     out = []
     for b in range(B):
-        m = {k: float(v[b]) for k, v in columns.items()}
-        m["tail_error_max_abs_by_component"] = [float(v) for v in by_component[b]]
-        m = {k: m[k] for k in ("final_error_norm", "final_error_max_abs", "tail_error_norm_max",
-                               "tail_error_max_abs", "tail_error_max_abs_by_component",
-                               "rms_error_norm", "error_norm_max")}
+        m = {k: columns[k][b] for k in ("final_error_norm", "final_error_max_abs",
+                                        "tail_error_norm_max", "tail_error_max_abs")}
+        m["tail_error_max_abs_by_component"] = components[b]
+        m["rms_error_norm"] = columns["rms_error_norm"][b]
+        m["error_norm_max"] = columns["error_norm_max"][b]
         m.update(final_abs_error=m["final_error_norm"], tail_max_abs_error=m[
             "tail_error_norm_max"], rms_error=m["rms_error_norm"],
             max_abs_error=m["error_norm_max"])

@@ -57,6 +57,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import functools
 import glob
 import io
 import json
@@ -228,8 +229,8 @@ def settings_key(spec, memo: dict | None = None) -> tuple:
     added later are included.  ``memo`` (kept by the caller while all the specs are alive)
     reuses the key of fields that are the very same objects as an earlier spec's (variants
     derived from one load share their connections, log, ...)."""
-    rest = [(f.name, getattr(spec, f.name)) for f in dataclasses.fields(spec)
-             if f.name not in ("parameters", "blocks")]
+    rest = [(name, getattr(spec, name)) for name in _field_names(type(spec))
+            if name not in ("parameters", "blocks")]
     if memo is not None:
         shared = tuple(id(value) for name, value in rest if name != "simulation")
         if shared not in memo:
@@ -240,6 +241,11 @@ def settings_key(spec, memo: dict | None = None) -> tuple:
         return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)
     except (pickle.PicklingError, TypeError, AttributeError):
         return tuple((name, _value_key(_plain(value))) for name, value in rest)
+
+
+@functools.lru_cache(maxsize=None)
+def _field_names(cls) -> tuple:
+    return tuple(f.name for f in dataclasses.fields(cls))
 
 
 def _plain(value):
@@ -500,8 +506,7 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
     concurrent = _client_workers(client) if client is not None else max(1, int(workers))
     batches = plan_batches(specs, blocks, metric, sequential=sequential, workers=concurrent,
                            max_memory=parse_size(max_memory), batch_size=batch_size)
-    trace_ids = frozenset(np.unique(np.linspace(0, len(table) - 1, min(
-        MAX_TRACES, len(table))).astype(int)).tolist())
+    trace_ids = _trace_set(len(table))
     result = SweepResult(diagram=path, names=names, variants=table, batches=[],
                          traces={}, metric_signal=metric,
                          settings=_plain(base.simulation), outdir=outdir,
@@ -576,16 +581,20 @@ def _store(result: SweepResult, part: dict, outdir: str | None) -> None:
 def _absorb(result: SweepResult, part: dict) -> None:
     if "signal_info" in part and not result.signal_info:
         result.signal_info = json.loads(str(part["signal_info"]))
+    traced = _trace_set(len(result.variants))
+    batch, status = part["batch"].tolist(), part["status"].tolist()
+    message, diverged = part["message"].tolist(), part["diverged_at"].tolist()
+    metrics = part["metrics"].tolist()              # Python floats: the same numbers
     for k, i in enumerate(part["indices"].tolist()):
         v = result.variants[i]
-        v.batch = int(part["batch"][k])
-        v.status = str(part["status"][k])
-        v.message = str(part["message"][k])
-        died = float(part["diverged_at"][k])
-        v.diverged_at = None if np.isnan(died) else died
-        v.metrics = ({m: float(x) for m, x in zip(METRICS, part["metrics"][k])}
+        v.batch = batch[k]
+        v.status = status[k]
+        v.message = message[k]
+        died = diverged[k]
+        v.diverged_at = None if math.isnan(died) else died
+        v.metrics = (dict(zip(METRICS, metrics[k]))
                      if v.status == "ok" and result.metric_signal is not None else {})
-        if "e" in part and part["has_signal"][k] and i in _trace_set(result):
+        if "e" in part and part["has_signal"][k] and i in traced:
             t = part["t"]
             e = part["e"][:, k]
             keep = np.isfinite(e.reshape(len(t), -1)).all(axis=1)
@@ -595,9 +604,11 @@ def _absorb(result: SweepResult, part: dict) -> None:
                                                              axis=1)))
 
 
-def _trace_set(result: SweepResult) -> set:
-    n = len(result.variants)
-    return set(np.unique(np.linspace(0, n - 1, min(MAX_TRACES, n)).astype(int)).tolist())
+@functools.lru_cache(maxsize=8)
+def _trace_set(n: int) -> frozenset:
+    """The variants (of ``n``) whose error traces are kept for the figure: MAX_TRACES spread
+    evenly."""
+    return frozenset(np.unique(np.linspace(0, n - 1, min(MAX_TRACES, n)).astype(int)).tolist())
 
 
 def _resume(result: SweepResult, outdir: str | None) -> set:
