@@ -199,6 +199,23 @@ def _value_key(value):
         return ("tuple", tuple(_value_key(v) for v in value))
     if kind is dict:
         return ("dict", tuple((k, _value_key(v)) for k, v in value.items()))
+    if kind not in _OTHER_TYPES:
+        if isinstance(value, (np.ndarray, dict, list, tuple, set, frozenset, slice)):
+            return _container_key(value)
+        _OTHER_TYPES.add(kind)          # none of the kinds above: straight to the last lines
+    try:
+        hash(value)
+    except TypeError:
+        return ("id", id(value))               # unhashable and unknown: never shared
+    return (kind.__name__, value)
+
+
+#: types seen by ``_value_key`` that are none of the containers it takes apart
+_OTHER_TYPES: set = set()
+
+
+def _container_key(value):
+    """The key of an array, dict, list, tuple, set or slice (or of a subclass of one)."""
     if isinstance(value, np.ndarray):
         return ("ndarray", value.shape, value.dtype.str, value.tobytes())
     if isinstance(value, dict):
@@ -207,13 +224,7 @@ def _value_key(value):
         return (type(value).__name__, tuple(_value_key(v) for v in value))
     if isinstance(value, (set, frozenset)):
         return ("set", tuple(sorted(repr(_value_key(v)) for v in value)))
-    if isinstance(value, slice):
-        return ("slice", value.start, value.stop, value.step)
-    try:
-        hash(value)
-    except TypeError:
-        return ("id", id(value))               # unhashable and unknown: never shared
-    return (type(value).__name__, value)
+    return ("slice", value.start, value.stop, value.step)
 
 
 def instantiate_variants(specs: list, made: dict | None = None) -> list:
