@@ -14,7 +14,7 @@ import pytest
 
 import fwdstep
 import fwdstep.program as program
-from fwdstep.compiler import compile_batch
+from fwdstep.compiler import compile_batch, compile_spec
 from fwdstep.spec import load_spec
 
 
@@ -81,3 +81,21 @@ def test_a_large_batch_takes_the_pair_copies_and_keeps_every_bit(monkeypatch):
     assert fast_source.count("put_pairs(") >= 6 and "put_pairs(" not in plain_source
     for name in fast.names:
         assert fast[name].tobytes() == plain[name].tobytes(), name
+
+
+def test_a_variant_in_a_batch_has_the_bits_of_its_run_alone():
+    """The property the batch's code keeps (docs/performance.md, docs/discrete-time.md): with
+    a gain per variant (one fused matrix per variant, the pair copies of a large batch) each
+    variant's logs are byte for byte those of its run alone."""
+    lam = np.linspace(2.0, 10.0, 70)
+    specs = [load_spec("diagrams/slotine_li.yaml", {"t_final": 0.1, "Lambda": x}) for x in lam]
+    d = compile_batch(specs)
+    d.logged = [d.resolve(n) for n in ("e.y", "tau.y", "adapt.theta_hat")]
+    batch = fwdstep.simulate(d)
+    for b in (0, 33, 69):
+        alone = compile_spec(specs[b])
+        alone.logged = list(d.logged)
+        one = fwdstep.simulate(alone)
+        for name in d.logged:
+            mine = np.ascontiguousarray(batch[name][:, b])
+            assert mine.tobytes() == one[name].reshape(mine.shape).tobytes(), (b, name)
