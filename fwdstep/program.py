@@ -17,7 +17,9 @@ text ever reaches it (the same technique as ``collections.namedtuple`` and
   buffer whose column views *are* the signals, and all fused states' derivatives are more
   columns of such a product (or one product at the end of the stage);
 * the RK stage sums are in-place NumPy operations on preallocated buffers, in the same
-  order as the reference stepper (so the unfused program is bit-identical to it).
+  order as the reference stepper (so the unfused program is bit-identical to it);
+* a large batch's two-column signals are copied into wider buffers as one 16-byte item per
+  pair (``_put_pairs``), which NumPy does in one loop instead of one per row.
 
 The procedure is the one documented in ``fwdstep.simulate``: each block output evaluated
 exactly once per stage, derivatives after all outputs, logging at stage 1.
