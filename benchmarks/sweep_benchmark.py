@@ -235,6 +235,15 @@ def main(argv=None) -> int:
             print(f"    the hand batched loop on the same {len(chunks)} batches, 2 processes / 1: "
                   f"{np.median(machine[1]) / np.median(machine[2]):.2f}x (what this machine "
                   f"gives this work)")
+            # each repeat's pair (1 then 2 workers, minutes apart at most) on its own: the
+            # VM's speed drifts between repeats, a pair shares its minutes
+            mine = np.array(rates[1]) / np.array(rates[2])
+            theirs = np.array(machine[1]) / np.array(machine[2])
+            print(f"    each repeat's pair on its own: fwdstep {', '.join(f'{x:.2f}' for x in mine)}"
+                  f" (median {np.median(mine):.2f}x); hand loop "
+                  f"{', '.join(f'{x:.2f}' for x in theirs)} (median {np.median(theirs):.2f}x); "
+                  f"fwdstep's scaling / the hand loop's, median of the repeats: "
+                  f"{np.median(mine / theirs):.2f}")
             print(f"    with 2 workers: {serial:.2f} s CPU in this process (load, plan, collect), "
                   f"{parallel:.2f} s in the workers: on 2 free cores at most "
                   f"{(serial + parallel) / (serial + parallel / 2):.2f}x")
