@@ -5,7 +5,7 @@ module named ``cli``); this file only forwards to it.
 """
 import sys
 
-from fwdstep.cli import main
+from fwdstep.cli.arguments import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -17,7 +17,7 @@ interleaved (A, B, A, B, ...) so that a busy machine slows both alike; the ratio
 of wall times measured in this one run.  Target (issue 12): fwdstep <= 2x the hand loop.
 
 ``--compiled`` also times ``--backend compiled`` (numba; URDFArm and URDFRegressor are called
-from the compiled loop in object mode, fwdstep/python_blocks.py), interleaved with the others,
+from the compiled loop in object mode, fwdstep/run/python_blocks.py), interleaved with the others,
 after one untimed short run that compiles (or loads) the structure, and prints its ratio to
 the NumPy path.  ``--diagram`` picks another robot diagram (the hand loop is Theorem 1's only:
 it is skipped for any other).

@@ -33,10 +33,10 @@ sys.path.insert(0, HERE)
 
 from hand_loops import A1, A2, A3, A4  # noqa: E402
 
-from fwdstep.compiler import compile_batch  # noqa: E402
-from fwdstep.simulate import simulate  # noqa: E402
-from fwdstep.spec import load_spec  # noqa: E402
-from fwdstep.sweep import run_sweep  # noqa: E402
+from fwdstep.structure.compiler import compile_batch  # noqa: E402
+from fwdstep.run.simulate import simulate  # noqa: E402
+from fwdstep.structure.spec import load_spec  # noqa: E402
+from fwdstep.sweeps.sweep import run_sweep  # noqa: E402
 
 SLOTINE = os.path.join(os.path.dirname(HERE), "diagrams", "slotine_li.yaml")
 

@@ -1,9 +1,9 @@
 """The fwdstep block library.
 
-Importing this package registers every library block in ``fwdstep.registry.REGISTRY``.
+Importing this package registers every library block in ``fwdstep.core.registry.REGISTRY``.
 Modules are listed explicitly: one module, one family of blocks.
 """
-from fwdstep.registry import REGISTRY, register  # noqa: F401
+from fwdstep.core.registry import REGISTRY, register  # noqa: F401
 
 from . import sources  # noqa: F401,E402  Constant, Step, Sine, Polynomial, disturbances
 from . import arithmetic  # noqa: F401,E402 Gain, Sum, Product, ScalarProduct, ...

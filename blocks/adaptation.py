@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep import kernelops as ko
-from fwdstep.block import MAX_SIGNAL_SIZE, Block, Param, as_written
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core import kernelops as ko
+from fwdstep.core.block import MAX_SIGNAL_SIZE, Block, Param, as_written
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 
 @register

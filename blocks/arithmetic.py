@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep import kernelops as ko
-from fwdstep.block import Block, Param, as_written
-from fwdstep.errors import ParameterError
-from fwdstep.linear import LinearForm
-from fwdstep.registry import register
+from fwdstep.core import kernelops as ko
+from fwdstep.core.block import Block, Param, as_written
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.linear import LinearForm
+from fwdstep.core.registry import register
 
 #: Largest signal a scalar Gain or a Sum describes as a dense LinearForm for fusion.
 MAX_FUSED_SIZE = 2000

@@ -2,7 +2,7 @@
 
 Every block here samples at ``t_k = offset + k * period`` (k = 0, 1, ...).  Its discrete
 state is part of the diagram's state vector, with zero derivative, and changes only at the
-sample instants, through ``update`` applied between Runge-Kutta steps (``fwdstep.events``):
+sample instants, through ``update`` applied between Runge-Kutta steps (``fwdstep.run.events``):
 the simulator ends a step exactly at every sample instant.  Outputs are functions of the
 discrete state alone, so they are exactly piecewise constant, right-continuous, and no
 output feeds through in continuous time; at a sample instant the new states are computed
@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep.block import Block, Param
-from fwdstep.errors import ParameterError
-from fwdstep.events import sample_instants
-from fwdstep.linear import observer_form
-from fwdstep.registry import register
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.run.events import sample_instants
+from fwdstep.core.linear import observer_form
+from fwdstep.core.registry import register
 
 from .linear import MAX_ORDER, initial_values, polynomial, signal_shape
 
@@ -228,7 +228,7 @@ class DiscreteTransferFunction(DiscreteStateSpace):
     Equation: y[k] = num(z) / den(z) u[k] (z = the one-sample advance), u[k] = u(t_k),
     t_k = offset + k period, y(t) = y[k] for t_k <= t < t_{k+1}; element by element with
     one shared denominator.  Realisation: the observer canonical form of
-    fwdstep.linear.observer_form (the same as TransferFunction's, in z), kron'd with the
+    fwdstep.core.linear.observer_form (the same as TransferFunction's, in z), kron'd with the
     identity over the signal's elements; the state starts at zero (y = 0 before the first
     sample).
 

@@ -1,6 +1,6 @@
 """Linear time-invariant blocks: integrators, transfer functions and state-space systems.
 
-All three are ``fwdstep.linear.LinearBlock`` subclasses: their constructors only build the
+All three are ``fwdstep.core.linear.LinearBlock`` subclasses: their constructors only build the
 generic matrices (A, B_j, C_k, D_kj) over the vectorised (C-order flattened) ports; the
 run-time code is shared.  A signal of several elements is filtered element by element (or
 column by column) by taking the Kronecker product of a small realisation with an identity:
@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep.block import Param
-from fwdstep.errors import ParameterError
-from fwdstep.linear import LinearBlock, observer_form
-from fwdstep.registry import register
+from fwdstep.core.block import Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.linear import LinearBlock, observer_form
+from fwdstep.core.registry import register
 
 #: The generic linear form stores dense (N, N) matrices; refuse realisations whose dense
 #: state matrix would exceed this many states (2000 states = 32 MB for A alone).

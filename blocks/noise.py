@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from fwdstep.block import Block, Param
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 #: The most sample instants one WhiteNoise declares per run (as discontinuity times).
 MAX_SAMPLES = 10_000_000
@@ -125,7 +125,7 @@ class WhiteNoise(Block):
         self.set_param("mean", np.broadcast_to(mean, (n,)))
         self.set_param("sample_time", [sample_time])                 # (1, 1)
         # the sample instants are discontinuity times: kept outside p as well, so variants with
-        # another Ts never share a batch (one batch, one step grid; fwdstep.block.discontinuities)
+        # another Ts never share a batch (one batch, one step grid; fwdstep.core.block.discontinuities)
         self.hold_interval = float(sample_time)
         self.set_param("channel", np.arange(n, dtype=float))
         self.set_kernels(output=white_noise_output,

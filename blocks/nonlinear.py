@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep.block import Block, Param, shape_str
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core.block import Block, Param, shape_str
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 #: The largest number of breakpoints of one Lookup1D table.
 MAX_TABLE = 100_000

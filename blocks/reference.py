@@ -17,10 +17,10 @@ from math import comb
 
 import numpy as np
 
-from fwdstep.block import Param
-from fwdstep.errors import ParameterError
-from fwdstep.linear import LinearBlock
-from fwdstep.registry import register
+from fwdstep.core.block import Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.linear import LinearBlock
+from fwdstep.core.registry import register
 
 from .linear import MAX_LINEAR_STATES
 

@@ -13,10 +13,10 @@ import math
 
 import numpy as np
 
-from fwdstep import kernelops as ko
-from fwdstep.block import MAX_BLOCK_STATES, Block, Param, as_written
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core import kernelops as ko
+from fwdstep.core.block import MAX_BLOCK_STATES, Block, Param, as_written
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 #: Physical parameters of the two-link arm (Slotine & Li, Applied Nonlinear Control,
 #: Example 9.2) with their defaults.

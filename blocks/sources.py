@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from fwdstep.block import Block, Param, shape_str
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core.block import Block, Param, shape_str
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 #: The highest derivative order a source may be asked for.
 MAX_DERIVATIVES = 8
@@ -541,7 +541,7 @@ class Pulse(Block):
                          static=(self.period, self.width, self.delay))
 
     def discontinuities(self, t_final):
-        from fwdstep.events import sample_instants
+        from fwdstep.run.events import sample_instants
         rises = sample_instants(self, self.period, self.delay, t_final)
         return np.concatenate([rises, rises + self.width])
 

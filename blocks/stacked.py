@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from fwdstep import kernelops as ko
-from fwdstep.block import Block, Param
-from fwdstep.errors import ParameterError
-from fwdstep.linear import LinearBlock, observer_form
-from fwdstep.registry import register
+from fwdstep.core import kernelops as ko
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.linear import LinearBlock, observer_form
+from fwdstep.core.registry import register
 
 from .linear import MAX_LINEAR_STATES, MAX_ORDER, initial_values, polynomial, signal_shape
 

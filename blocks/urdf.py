@@ -11,7 +11,7 @@ pinocchio (PyPI ``pin``) and ``example-robot-data`` are the optional extra ``fwd
 without them this module still imports and registers its blocks (``fwdstep blocks`` lists them
 with an install hint), and building one raises a one-line ParameterError.  pinocchio's calls
 cannot run inside numba-compiled code: the compiled backend calls these blocks' methods through
-numba's object mode (``compile_with = "objmode"``, fwdstep/block.py).
+numba's object mode (``compile_with = "objmode"``, fwdstep/core/block.py).
 """
 from __future__ import annotations
 
@@ -20,9 +20,9 @@ import os
 
 import numpy as np
 
-from fwdstep.block import Block, Param
-from fwdstep.errors import ParameterError
-from fwdstep.registry import register
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import register
 
 from .robot import MechanicalPlant
 

@@ -37,8 +37,8 @@ import matplotlib.ticker  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from fwdstep.sampling import unit_points  # noqa: E402
-from fwdstep.sweep import run_sweep  # noqa: E402
+from fwdstep.sweeps.sampling import unit_points  # noqa: E402
+from fwdstep.sweeps.sweep import run_sweep  # noqa: E402
 
 DIAGRAM = os.path.join(ROOT, "diagrams", "theorem3.yaml")
 

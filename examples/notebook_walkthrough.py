@@ -11,9 +11,9 @@ import os
 import numpy as np
 
 import fwdstep
-from fwdstep.drawing import draw_diagram
-from fwdstep.report import write_report
-from fwdstep.spec import load_spec
+from fwdstep.views.drawing import draw_diagram
+from fwdstep.views.report import write_report
+from fwdstep.structure.spec import load_spec
 
 OUT = os.path.join("out", "walkthrough")
 DIAGRAM = "diagrams/theorem1.yaml"

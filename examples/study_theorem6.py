@@ -45,7 +45,7 @@ TAIL = 0.2          # tracking error over the last 20% of the run
 def run_case(job):
     """Run one diagram with and without the disturbance (one batch of two variants)."""
     import fwdstep
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.spec import load_spec
 
     label, path, overrides = job
     specs = [load_spec(path, dict(overrides, **extra))
@@ -53,7 +53,7 @@ def run_case(job):
     wall = time.perf_counter()
     try:
         r = fwdstep.simulate(fwdstep.compile_batch(specs))
-    except fwdstep.errors.SimulationError as exc:     # keep what was computed
+    except fwdstep.core.errors.SimulationError as exc:     # keep what was computed
         r = exc.result
     error_name = "qds.dq" if "qds.dq" in r else "dq.y"
     return {"label": label, "t": r.t, "theta": r["adapt.theta_hat"], "dq": r[error_name],

@@ -39,7 +39,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 import fwdstep  # noqa: E402
-from fwdstep.spec import load_spec  # noqa: E402
+from fwdstep.structure.spec import load_spec  # noqa: E402
 
 from fwdstep.blocks.reference import is_hurwitz  # noqa: E402
 

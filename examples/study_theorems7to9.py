@@ -46,9 +46,9 @@ def cases():
 
 def run(item):
     name, (diagram, overrides), t_final = item
-    from fwdstep.compiler import compile_spec
-    from fwdstep.simulate import simulate
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_spec
+    from fwdstep.run.simulate import simulate
+    from fwdstep.structure.spec import load_spec
     spec = load_spec(os.path.join(ROOT, "diagrams", diagram), overrides)
     spec.simulation.t_final = t_final
     spec.simulation.step = 0.005 if diagram.startswith(("theorem7", "theorem9")) else 0.002

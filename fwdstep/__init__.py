@@ -7,15 +7,15 @@ Python API::
     r = fwdstep.simulate(d)
     r.t, r["err.y"], r.metrics()
 """
-from .compiler import CompiledDiagram, compile_batch, load_diagram
-from .errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, DiagramError,
+from fwdstep.structure.compiler import CompiledDiagram, compile_batch, load_diagram
+from fwdstep.core.errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, DiagramError,
                      DivergenceError, ExpressionError, FwdstepError, OutputError, ParameterError,
                      ShapeError, SimulationError, UnknownBlockTypeError, WiringError, YamlError)
-from .result import Result, load_result
-from .simulate import SimulationInterrupted, simulate
-from .compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
-from .sweep import SweepResult, run_sweep  # noqa: E402
-from .labelled import load_sweep  # noqa: E402
+from fwdstep.results.result import Result, load_result
+from fwdstep.run.simulate import SimulationInterrupted, simulate
+from fwdstep.views.compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
+from fwdstep.sweeps.sweep import SweepResult, run_sweep  # noqa: E402
+from fwdstep.results.labelled import load_sweep  # noqa: E402
 
 __all__ = [
     "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",

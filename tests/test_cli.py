@@ -1,4 +1,4 @@
-"""The ``fwdstep`` command (cli.py parses, fwdstep.commands works), run in-process through
+"""The ``fwdstep`` command (cli.py parses, fwdstep.cli.commands works), run in-process through
 ``cli.main`` except one check that the installed console script is wired up."""
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from fwdstep import cli
-from fwdstep.registry import load_library
+from fwdstep.cli import arguments as cli
+from fwdstep.core.registry import load_library
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(__file__), ".."))
 THEOREM1 = os.path.join(ROOT, "diagrams", "theorem1.yaml")

@@ -11,7 +11,7 @@ import pytest
 
 from fwdstep.blocks.adaptation import AdaptationLaw
 from fwdstep.blocks.robot import Regressor, TwoLinkArm
-from fwdstep.errors import ParameterError
+from fwdstep.core.errors import ParameterError
 
 SPD = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, -0.3], [0.0, -0.3, 4.0]])
 

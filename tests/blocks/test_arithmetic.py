@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fwdstep.blocks.arithmetic import Demux, Gain, Mux, Product, ScalarProduct, Selector, Sum
-from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ParameterError
+from fwdstep.structure.compiler import stack_blocks
+from fwdstep.core.errors import ParameterError
 
 RNG = np.random.default_rng(20240611)
 NO_STATE = np.zeros((1, 0))

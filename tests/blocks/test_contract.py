@@ -13,8 +13,8 @@ import re
 import numpy as np
 import pytest
 
-from fwdstep.errors import ParameterError
-from fwdstep.registry import load_library
+from fwdstep.core.errors import ParameterError
+from fwdstep.core.registry import load_library
 
 REGISTRY = load_library()
 NAMES = sorted(REGISTRY)
@@ -163,7 +163,7 @@ def test_every_block_can_run_compiled_or_says_why():
     """No list of blocks with a kernel: each block declares kernels, is linear (fused from
     its LinearForm) or names its reason."""
     pytest.importorskip("numba")
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     for name in AVAILABLE:
         blk = _make(name)
         reason = backend_numba.refusal(blk)
@@ -188,7 +188,7 @@ def test_numpy_and_compiled_kernels_agree(name):
     function jitted, called one variant at a time as the generated loop does) give the same
     outputs and derivatives at random points, to 1e-12."""
     pytest.importorskip("numba")
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     rng = np.random.default_rng(3)
     blk = _make(name)
     k = blk.kernels

@@ -312,8 +312,8 @@ simulation: {{t_final: 0.02, step: 0.001, solver: rk4}}
 def test_states_initialised_from_inputs_see_the_samples_of_t0(tmp_path):
     """Reference dynamics behind a hold start from the hold's sample of t = 0, as they do
     without the hold (not from the hold's initial value 0)."""
-    from fwdstep.events import plan_events
-    from fwdstep.simulate import initial_state
+    from fwdstep.run.events import plan_events
+    from fwdstep.run.simulate import initial_state
     held = _load(tmp_path, REF_INIT.format(via="zoh.u", src="zoh"))
     plain = _load(tmp_path, REF_INIT.format(via="zoh.u", src="q"))
     x_held = initial_state(held, event=plan_events(held, 0.001, 20).start)

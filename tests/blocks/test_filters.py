@@ -17,7 +17,7 @@ import pytest
 from scipy import signal
 
 import fwdstep
-from fwdstep.spec import load_spec
+from fwdstep.structure.spec import load_spec
 
 LIB = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "diagrams", "lib",
                                    "error_augmentation.yaml"))
@@ -146,7 +146,7 @@ def _run_rich(tmp_path, theta_source, theta_wiring=""):
     open(path, "w").write(text)
     spec = load_spec(path)
     spec.log = None
-    return fwdstep.simulate(fwdstep.compiler.compile_spec(spec))
+    return fwdstep.simulate(fwdstep.structure.compiler.compile_spec(spec))
 
 
 def _lsim_G(t, u, ell, K, Lam):

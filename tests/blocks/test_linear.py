@@ -13,7 +13,7 @@ import pytest
 import scipy.signal
 
 from fwdstep.blocks.linear import Integrator, StateSpace, TransferFunction
-from fwdstep.errors import ParameterError
+from fwdstep.core.errors import ParameterError
 
 T_END = 4.0
 STEP = 1e-3

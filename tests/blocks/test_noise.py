@@ -10,9 +10,9 @@ from scipy import stats
 
 import fwdstep
 from fwdstep.blocks.noise import WhiteNoise
-from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ParameterError
-from fwdstep.sweep import run_sweep
+from fwdstep.structure.compiler import stack_blocks
+from fwdstep.core.errors import ParameterError
+from fwdstep.sweeps.sweep import run_sweep
 
 NO_STATE = np.zeros((1, 0))
 

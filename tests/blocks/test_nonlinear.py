@@ -7,8 +7,8 @@ import pytest
 
 import fwdstep
 from fwdstep.blocks.nonlinear import DeadZone, Friction, Lookup1D, RateLimiter, Saturation, Switch
-from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ParameterError
+from fwdstep.structure.compiler import stack_blocks
+from fwdstep.core.errors import ParameterError
 
 NO_STATE = np.zeros((1, 0))
 

@@ -20,8 +20,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from fwdstep.blocks.reference import ReferenceDynamics, is_hurwitz
-from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ParameterError
+from fwdstep.structure.compiler import stack_blocks
+from fwdstep.core.errors import ParameterError
 
 N_JOINTS = 2
 T_END = 2.0

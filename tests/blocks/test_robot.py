@@ -10,7 +10,7 @@ import pytest
 
 from fwdstep.blocks.robot import (NLinkArm, NLinkRegressor, PointMass, PointMassRegressor, Regressor,
                           TwoLinkArm)
-from fwdstep.errors import ParameterError
+from fwdstep.core.errors import ParameterError
 
 SLOTINE_LI = dict(m1=1.0, l1=1.0, me=2.0, delta_e=30.0, I1=0.12, lc1=0.5, Ie=0.25, lce=0.6)
 OTHER_ARM = dict(m1=1.5, l1=0.8, me=1.2, delta_e=-20.0, I1=0.05, lc1=0.3, Ie=0.1, lce=0.4)
@@ -546,7 +546,7 @@ def test_a_regressor_without_the_plants_gravity_is_refused_at_load_time(tmp_path
     import textwrap
 
     import fwdstep
-    from fwdstep.errors import WiringError
+    from fwdstep.core.errors import WiringError
     base = """\
         blocks:
           arm: {type: TwoLinkArm, gravity: 9.81}

@@ -8,8 +8,8 @@ import pytest
 from numpy.polynomial import polynomial as P
 
 from fwdstep.blocks.sources import Constant, MultiSine, Polynomial, RandomDisturbance, Sine, Step
-from fwdstep.compiler import stack_blocks
-from fwdstep.errors import ConfigError, ParameterError
+from fwdstep.structure.compiler import stack_blocks
+from fwdstep.core.errors import ConfigError, ParameterError
 
 NO_STATE = np.zeros((1, 0))
 TIMES = (0.0, 0.37, 1.9, -2.5, 13.0)
@@ -81,7 +81,7 @@ def test_step_batch():
                                 {"after": [0.0, 2.0], "before": [1.0, 0.5], "time": [0.3, 1.0]}],
                          times=(-4.0, 0.0, 0.3, 0.5, 1.0, 2.5))
     # steps that jump at different times never share a batch: a run splits its steps at
-    # every jump (fwdstep.events), so batched variants would not equal their single runs
+    # every jump (fwdstep.run.events), so batched variants would not equal their single runs
     with pytest.raises(ConfigError, match="differ in structure"):
         stacked(Step, [{"after": 1.0, "time": 0.3}, {"after": 1.0, "time": 1.0}])
 
@@ -306,7 +306,7 @@ def test_a_frequency_whose_derivatives_overflow_is_refused_in_one_line():
     """Found by the fuzz test: w = 1.34e154 with two derivatives overflowed w^2 in setup (a
     RuntimeWarning, an error under the test settings, instead of a ParameterError)."""
     from fwdstep.blocks.sources import Sine
-    from fwdstep.errors import ParameterError
+    from fwdstep.core.errors import ParameterError
     with pytest.raises(ParameterError) as info:
         Sine("s", amplitude=[1.0, 0.5], frequency=1.3407807929942597e+154, derivatives=2)
     assert str(info.value) == (

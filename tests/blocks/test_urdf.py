@@ -12,7 +12,7 @@ pin = pytest.importorskip("pinocchio")
 
 from fwdstep.blocks.robot import NLinkArm, NLinkRegressor  # noqa: E402
 from fwdstep.blocks.urdf import NAMED_ROBOTS, URDFArm, URDFRegressor, _robots_folder  # noqa: E402
-from fwdstep.errors import ParameterError  # noqa: E402
+from fwdstep.core.errors import ParameterError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ("panda", "ur5")
@@ -248,7 +248,7 @@ def test_without_pinocchio_blocks_are_listed_with_a_hint_and_refused_in_one_line
 
 def test_a_regressor_that_does_not_match_its_plant_is_refused_at_load_time(tmp_path):
     import fwdstep
-    from fwdstep.errors import WiringError
+    from fwdstep.core.errors import WiringError
     diagram = tmp_path / "mismatch.yaml"
     diagram.write_text(textwrap.dedent("""\
         blocks:

@@ -109,7 +109,7 @@ def test_a_sweep_over_the_payload_time_runs_each_variant_as_alone(tmp_path):
     """Variants picking up the payload at different times never share a batch (each batch
     has one step grid, split at its jump times); a batch of them used to end in a bare
     IndexError.  Each variant equals its own run, and one without payload runs too."""
-    from fwdstep.sweep import run_sweep
+    from fwdstep.sweeps.sweep import run_sweep
     path = tmp_path / "payload.yaml"
     path.write_text("""
 parameters: {T: 0.35, load: 1.0}

@@ -48,7 +48,7 @@ def test_another_initial_z_is_a_different_controller():
     """The identity needs z(0) = qdot_d(0) - K_D^-1 K_P Delta q(0): moving z(0) by 0.05
     adds the constant torque -K_D c, and the trajectories part."""
     classic = run("pid_classic", **TRACKING)
-    spec = fwdstep.spec.load_spec(os.path.join(DIAGRAMS, "pid_reformulated.yaml"), TRACKING)
+    spec = fwdstep.structure.spec.load_spec(os.path.join(DIAGRAMS, "pid_reformulated.yaml"), TRACKING)
     z0 = spec.parameters["z0"] + 0.05
     reform = run("pid_reformulated", z0=z0.tolist(), **TRACKING)
     assert np.max(np.abs(reform["arm.q"] - classic["arm.q"])) > 1e-3

@@ -15,10 +15,10 @@ import os
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.compiler import compile_spec
-from fwdstep.spec import load_spec
+from fwdstep.structure.compiler import compile_spec
+from fwdstep.structure.spec import load_spec
 
 DIAGRAMS = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", "..", "diagrams"))
 SHIPPED = sorted(glob.glob(os.path.join(DIAGRAMS, "*.yaml")))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.spec import load_spec
+from fwdstep.structure.spec import load_spec
 
 DIAGRAMS = os.path.join(os.path.dirname(__file__), "..", "..", "diagrams")
 THEOREM1 = os.path.join(DIAGRAMS, "theorem1.yaml")

@@ -22,7 +22,7 @@ from scipy import signal
 
 import fwdstep
 from fwdstep.blocks.robot import TwoLinkArm
-from fwdstep.spec import load_spec
+from fwdstep.structure.spec import load_spec
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 THEOREM6 = os.path.join(ROOT, "diagrams", "theorem6.yaml")
@@ -35,7 +35,7 @@ def run_logged(path, overrides):
     spec = load_spec(path, overrides)
     spec.simulation.log_every = 1
     spec.log = None
-    return spec.parameters, fwdstep.simulate(fwdstep.compiler.compile_spec(spec))
+    return spec.parameters, fwdstep.simulate(fwdstep.structure.compiler.compile_spec(spec))
 
 
 def arm_model(q, qdot):
@@ -119,7 +119,7 @@ def test_converges_without_disturbance_to_a_set_point():
     """A constant q_d meets Theorem 1's assumption (d^ell q_d = 0): Dq -> 0."""
     spec = load_spec(THEOREM6, {"ell": 2, "dist_amplitude": [0, 0], "qd_amplitude": [0, 0],
                                 "qd_offset": [0.5, -0.4], "t_final": 12, "step": 0.005})
-    r = fwdstep.simulate(fwdstep.compiler.compile_spec(spec))
+    r = fwdstep.simulate(fwdstep.structure.compiler.compile_spec(spec))
     err = np.linalg.norm(r["qds.dq"], axis=1)
     assert err[0] == pytest.approx(np.hypot(0.2, 0.2))          # q0 = [0.3, -0.2]
     assert err[-1] < 1e-4                                         # stated tolerance
@@ -184,7 +184,7 @@ def test_shipped_diagram_runs_and_plots(tmp_path, path):
     """`fwdstep run` writes the error, torque and parameter-estimate figures."""
     import matplotlib
     matplotlib.use("Agg")
-    from fwdstep.commands import cmd_run
+    from fwdstep.cli.commands import cmd_run
     out = tmp_path / "out"
     code = cmd_run(path, sets=["t_final=0.2"], outdir=str(out), quiet=True)
     assert code == 0

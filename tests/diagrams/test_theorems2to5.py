@@ -56,7 +56,7 @@ def closed_form(theorem: int, p: complex, ell: int, m: float, K: float, alpha: f
                          + ["slotine_li_sine_disturbance"])
 def test_theta_in_the_diagram_is_the_plants(name):
     """The feedforward parameters written out in the YAML are the arm's true theta."""
-    spec = fwdstep.spec.load_spec(path(name))
+    spec = fwdstep.structure.spec.load_spec(path(name))
     gravity = spec.parameters.get("gravity", 0.0)
     true = TwoLinkArm.parameter_vector(gravity=gravity)
     np.testing.assert_allclose(spec.parameters["theta"], true, rtol=1e-15)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import yaml
 
-from fwdstep.compiler import compile_spec
-from fwdstep.simulate import simulate
-from fwdstep.spec import load_spec
+from fwdstep.structure.compiler import compile_spec
+from fwdstep.run.simulate import simulate
+from fwdstep.structure.spec import load_spec
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DIAGRAMS = os.path.normpath(os.path.join(HERE, "..", "..", "diagrams"))

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.spec import load_spec
+from fwdstep.structure.spec import load_spec
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", ".."))
 THEOREM1 = os.path.join(ROOT, "diagrams", "theorem1.yaml")

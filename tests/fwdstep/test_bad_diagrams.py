@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.errors import (AlgebraicLoopError, ConfigError, DiagramError, ExpressionError,
+from fwdstep.core.errors import (AlgebraicLoopError, ConfigError, DiagramError, ExpressionError,
                             ParameterError, ShapeError, UnknownBlockTypeError, WiringError,
                             YamlError)
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.compiler import compile_batch, compile_spec, instantiate_variants
-from fwdstep.errors import ConfigError, DivergenceError
-from fwdstep.spec import load_spec
+from fwdstep.structure.compiler import compile_batch, compile_spec, instantiate_variants
+from fwdstep.core.errors import ConfigError, DivergenceError
+from fwdstep.structure.spec import load_spec
 
 LOOP = """
 parameters: {ell: 2, alpha: 4, gamma: 2, K: 20*eye(2), q0: [0.1, -0.1], amp: [0.3, 0.2]}
@@ -135,9 +135,9 @@ def test_different_structures_are_refused(path):
 def test_variants_differing_in_a_flag_are_not_stacked():
     """A str/bool/choice/int parameter may select a code path: never stack across it unless
     the block declares it in ``stacked_params`` (keeps it in ``p`` per variant)."""
-    from fwdstep.block import Block, Param
-    from fwdstep.compiler import structure_signature
-    from fwdstep.registry import load_library
+    from fwdstep.core.block import Block, Param
+    from fwdstep.structure.compiler import structure_signature
+    from fwdstep.core.registry import load_library
 
     class Switch(Block):
         """Test-only: y = u or y = -u by a choice that is NOT stored in p."""
@@ -162,8 +162,8 @@ def test_a_number_kept_outside_p_splits_the_batch():
     """A block that keeps a parameter in a private attribute (not in ``p``) must not be
     stacked with a variant whose attribute differs: ``stack_blocks`` would give it the first
     variant's number.  What ``finalize`` recomputes from the stacked ``p`` does not split."""
-    from fwdstep.block import Block, Param
-    from fwdstep.compiler import stack_blocks, structure_signature
+    from fwdstep.core.block import Block, Param
+    from fwdstep.structure.compiler import stack_blocks, structure_signature
 
     class Hidden(Block):
         """Test-only: y = k u with k kept outside p (a block written carelessly)."""

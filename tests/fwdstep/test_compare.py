@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.cli import main
-from fwdstep.compare import compare
-from fwdstep.errors import OutputError
-from fwdstep.result import load_result
-from fwdstep.spec import load_spec
+from fwdstep.cli.arguments import main
+from fwdstep.views.compare import compare
+from fwdstep.core.errors import OutputError
+from fwdstep.results.result import load_result
+from fwdstep.structure.spec import load_spec
 
 DECAY = """
 parameters: {{g: -1.0}}
@@ -139,13 +139,13 @@ def test_sweep_variants_compare_by_their_real_names_and_equal_a_run(tmp_path, ca
                                                                    monkeypatch):
     """A sweep directory's variants (SWEEP@k) overlay under the signal's real name, label and
     unit; variant g = -2 equals a separate run with g = -2; differences are analytic."""
-    import fwdstep.plotting
+    import fwdstep.results.plotting
     path = tmp_path / "decay.yaml"
     path.write_text(DECAY.format(t_final=2, step=0.01))
     sweep = tmp_path / "sweep"
     figures = []
-    real_bytes = fwdstep.plotting.figure_bytes
-    monkeypatch.setattr(fwdstep.plotting, "figure_bytes",
+    real_bytes = fwdstep.results.plotting.figure_bytes
+    monkeypatch.setattr(fwdstep.results.plotting, "figure_bytes",
                         lambda fig, fmt="png": figures.append(fig) or real_bytes(fig, fmt))
     assert main(["sweep", str(path), "--grid", "g=-1,-2", "-o", str(sweep), "-q",
                  "--workers", "1"]) == 0

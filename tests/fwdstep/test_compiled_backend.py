@@ -1,4 +1,4 @@
-"""The optional compiled backend (numba, fwdstep/backend_numba.py) gives the NumPy path's numbers.
+"""The optional compiled backend (numba, fwdstep/compiled/backend_numba.py) gives the NumPy path's numbers.
 
 Skipped when numba is not installed.  The generated code is compiled into pytest's cache
 directory (``.pytest_cache``), so only the first run pays numba's compile (tens of seconds
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.errors import ConfigError, DivergenceError
+from fwdstep.core.errors import ConfigError, DivergenceError
 
 numba = pytest.importorskip("numba")
 
@@ -112,8 +112,8 @@ def test_a_block_without_kernel_is_refused(tmp_path):
     path = tmp_path / "d.yaml"
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\n  f: {type: FragileKernelless}\n"
                     "connections:\n  - c.y -> f.u\n")
-    from fwdstep.block import Block
-    from fwdstep.registry import REGISTRY, register
+    from fwdstep.core.block import Block
+    from fwdstep.core.registry import REGISTRY, register
 
     @register
     class FragileKernelless(Block):
@@ -140,8 +140,8 @@ def test_a_block_without_kernel_is_refused(tmp_path):
 @pytest.mark.slow
 def test_generated_module_is_cached_by_structure(loop):
     """Parameters are arguments: another gain reuses the same generated module."""
-    from fwdstep import backend_numba
-    from fwdstep.llvm_stage import stage_ir
+    from fwdstep.compiled import backend_numba
+    from fwdstep.compiled.llvm_stage import stage_ir
     a = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 4}), 10)
     b = backend_numba.build_program(fwdstep.load_diagram(loop, {"alpha": 7}), 10)
     # the loop is one cached module; the stage's code is the same text (alpha is in W)
@@ -159,8 +159,8 @@ def test_a_block_may_declare_why_it_cannot_run_compiled(tmp_path):
     path = tmp_path / "d.yaml"
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\n  f: {type: PinocchioLike}\n"
                     "connections:\n  - c.y -> f.u\n")
-    from fwdstep.block import Block
-    from fwdstep.registry import REGISTRY, register
+    from fwdstep.core.block import Block
+    from fwdstep.core.registry import REGISTRY, register
 
     @register
     class PinocchioLike(Block):
@@ -188,8 +188,8 @@ def test_a_block_may_declare_why_it_cannot_run_compiled(tmp_path):
 @pytest.mark.slow
 def test_batched_compiled_run_equals_one_by_one_runs(loop):
     """A batch runs its variants in parallel (prange), each exactly as a single run."""
-    from fwdstep.compiler import compile_batch
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_batch
+    from fwdstep.structure.spec import load_spec
     alphas = (3.0, 4.0, 6.0)
     batch = fwdstep.simulate(compile_batch([load_spec(loop, {"alpha": a}) for a in alphas]),
                              backend="compiled")
@@ -205,7 +205,7 @@ def test_a_sweep_over_ell_generates_one_program(monkeypatch):
     compile), not ten, when the diagram asks for it (a sweep whose batches differ in
     structure does: see the next test); a single run gets scalar code for its sizes."""
     import hashlib
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     seen = []
     monkeypatch.setattr(backend_numba.compiled_cache, "load",
                         lambda source: seen.append(hashlib.sha256(source.encode()).digest()))
@@ -221,7 +221,7 @@ def test_a_compiled_sweep_over_sizes_asks_for_run_time_sizes(monkeypatch):
     """A compiled sweep whose batches differ in structure (ell = 1, 2, 3) runs them all with
     the one program of run-time sizes; a sweep over numbers only (one structure) keeps the
     scalar code.  (The runs here are NumPy-path runs: only the request is checked.)"""
-    from fwdstep import sweep as sw
+    from fwdstep.sweeps import sweep as sw
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     path = os.path.join(root, "diagrams", "theorem1.yaml")
     seen = []
@@ -246,10 +246,10 @@ def test_a_batch_compiles_the_kernels_of_one_variant_and_restores_the_batch_ones
     (TwoLinkArm, Regressor: finalize(batch)) is compiled with its one-variant kernels, which
     numba turns into scalar code (the vectorised ones allocate an array per operation); the
     NumPy path of the same diagram keeps its batch kernels.  No compiling here."""
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     from fwdstep.blocks import robot
-    from fwdstep.compiler import compile_batch
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_batch
+    from fwdstep.structure.spec import load_spec
     path = os.path.join(os.path.dirname(__file__), "..", "..", "diagrams", "slotine_li.yaml")
     d = compile_batch([load_spec(path, {"Lambda": lam}) for lam in (2.0, 5.0, 8.0)])
     arm = next(st.block for st in d.schedule if st.block.name == "arm")
@@ -293,7 +293,7 @@ log: [sat.y, arm.q, fr.tau_f, pulse.y, step.y]
 def test_switching_blocks_run_as_scalar_stages_with_the_numpy_paths_numbers(tmp_path):
     """Pulse (floor, and of comparisons), Step, Friction (sign), Saturation and DeadZone
     (selections) trace to scalar code, and the run gives the NumPy path's numbers."""
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     path = tmp_path / "switching.yaml"
     path.write_text(NONLINEAR)
     d = fwdstep.load_diagram(str(path))
@@ -306,7 +306,8 @@ def test_switching_blocks_run_as_scalar_stages_with_the_numpy_paths_numbers(tmp_
 
 @pytest.mark.slow
 def test_an_llvm_fault_warns_once_and_runs_the_array_code(loop, monkeypatch, capsys):
-    from fwdstep import backend_numba, llvm_stage
+    from fwdstep.compiled import backend_numba
+    from fwdstep.compiled import llvm_stage
 
     def broken(st):
         raise RuntimeError("LLVM ERROR: no target")

@@ -150,11 +150,11 @@ def test_an_edited_block_changes_the_cache_key(tmp_path, monkeypatch):
     another one.  Keying by the file on disk labelled machine code of the old text with the
     new text's key: the next process, loading the edited file, ran the old code."""
     import fwdstep
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     plugin = tmp_path / "doubler.py"
     body = '''
-from fwdstep.block import Block
-from fwdstep.registry import register
+from fwdstep.core.block import Block
+from fwdstep.core.registry import register
 
 
 def doubler_output(t, x, u):
@@ -184,7 +184,7 @@ class Doubler(Block):
     seen = []
     monkeypatch.setattr(backend_numba.compiled_cache, "load",
                         lambda source: seen.append(source) or None)
-    from fwdstep.llvm_stage import stage_ir
+    from fwdstep.compiled.llvm_stage import stage_ir
     stages = []
     real = backend_numba._scalar_stage
 
@@ -199,7 +199,7 @@ class Doubler(Block):
     plugin.write_text(body.replace("FACTOR = 2.0", "FACTOR = 3.0"))
     backend_numba.build_program(d, 5)              # the loaded code is unchanged
     assert len(seen) == 2 and seen[0] == seen[1]
-    fwdstep.registry._plugin_files.clear()         # as a new process would: load the new text
+    fwdstep.core.registry._plugin_files.clear()         # as a new process would: load the new text
     d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
     backend_numba.build_program(d, 5)
     changed = [a for a, b in zip(seen[0].splitlines(), seen[2].splitlines()) if a != b]
@@ -217,7 +217,7 @@ def test_a_kernel_digest_follows_its_code_and_frozen_globals_not_its_comments(tm
     are part of the digest; comments and line numbers are not (no needless recompiles)."""
     import importlib
     import sys
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setattr(sys, "dont_write_bytecode", True)   # same size, same second: no .pyc
     text = "import numpy as np\n\nC = 2.0\nW = np.array([1.0, 2.0])\n\n\n" \
@@ -243,7 +243,7 @@ def test_a_kernel_digest_is_the_same_in_another_process():
     cache another one wrote."""
     import subprocess
     import sys
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     code = ("from fwdstep import backend_numba as b; "
             "print(b._function_digest(b._copy), b._function_digest(b._view1))")
     there = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -260,7 +260,7 @@ def test_an_edited_helper_module_never_reuses_a_cached_kernel(folder, tmp_path, 
     machine code (2 x + 1 below) without that folder key."""
     import importlib
     import sys
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     (tmp_path / "h24_helper.py").write_text("def helper(x):\n    return 2.0 * x\n")
     (tmp_path / "h24_kernel.py").write_text(
         "from h24_helper import helper\n\n\ndef kern(x):\n    return helper(x) + 1.0\n")

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.compiler import compile_spec
-from fwdstep.errors import ConfigError
-from fwdstep.solvers import IVP_METHODS
-from fwdstep.spec import load_spec
+from fwdstep.structure.compiler import compile_spec
+from fwdstep.core.errors import ConfigError
+from fwdstep.run.solvers import IVP_METHODS
+from fwdstep.structure.spec import load_spec
 
 pytest.importorskip("numba")
 
@@ -64,7 +64,7 @@ def cache(numba_cache):
 @pytest.mark.parametrize("path", SHIPPED, ids=_name)
 def test_compiled_backend_refuses_exactly_the_listed_blocks(path):
     """No compiling: the refusal (or its absence) is decided before any code is generated."""
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     spec = _short(path)
     if spec.simulation.solver in IVP_METHODS:
         pytest.skip("scipy solve_ivp solver: NumPy path only")
@@ -103,7 +103,7 @@ def test_shipped_diagram_on_both_paths(path):
 
 
 #: jumps off the step grid (h = 1 ms): a Step at T, pulse edges, noise held over 0.7 ms, into
-#: a saturated second-order loop; the steps they fall in are split (fwdstep.events)
+#: a saturated second-order loop; the steps they fall in are split (fwdstep.run.events)
 JUMPS = """
 parameters: {T: 0.0123, A: 1.0, seed: 1}
 blocks:
@@ -150,7 +150,7 @@ def test_split_steps_agree_on_both_paths(jumps, T):
     """Steps split at jumps off the grid, clamped stage times, an event at t_final: the
     compiled loop runs the NumPy path's step grid (the same numbers), and the integral of
     the Step is exact, A (t - T) (RK4 integrates each constant piece exactly)."""
-    from fwdstep.events import plan_events
+    from fwdstep.run.events import plan_events
     d = fwdstep.load_diagram(jumps, {"T": T})
     plan = plan_events(d, 0.001, 50)
     assert any(abs(sub.a / 0.001 - round(sub.a / 0.001)) > 1e-6
@@ -165,7 +165,7 @@ def test_split_steps_agree_on_both_paths(jumps, T):
 def test_batch_with_jumps_equals_one_by_one_compiled_runs(jumps):
     """A batch (run_all, prange) of variants with other seeds and heights: each variant is
     its own compiled run; the batch equals the NumPy path's batch."""
-    from fwdstep.compiler import compile_batch
+    from fwdstep.structure.compiler import compile_batch
     values = [{"A": 1.0, "seed": 1}, {"A": -2.0, "seed": 2}, {"A": 0.5, "seed": 7}]
     d = compile_batch([load_spec(jumps, v) for v in values])
     batch = fwdstep.simulate(d, backend="compiled")
@@ -179,7 +179,7 @@ def test_batch_with_jumps_equals_one_by_one_compiled_runs(jumps):
 def test_compiled_sweep_over_jump_times_and_seeds(jumps):
     """``fwdstep sweep --backend compiled`` over jump times (separate batches: one step
     grid per batch) and seeds: each variant's recorded signal is its own compiled run."""
-    from fwdstep.sweep import run_sweep
+    from fwdstep.sweeps.sweep import run_sweep
     result = run_sweep(jumps, grid={"T": [0.0123, 0.05], "seed": [1, 2]}, backend="compiled")
     assert result.counts() == {"ok": 4} and len(result.batches) == 2
     recorded = {int(i): (part["t"], part["e"][:, k]) for part in result.parts
@@ -218,10 +218,10 @@ simulation: {t_final: 0.05, step: 0.001, solver: rk4, log_every: 3}
 
 @pytest.mark.slow
 def test_discrete_blocks_agree_on_both_paths(tmp_path):
-    """Discrete updates between (sub-)steps (the loop pauses, fwdstep.events.apply_updates
+    """Discrete updates between (sub-)steps (the loop pauses, fwdstep.run.events.apply_updates
     updates, the loop resumes at that sub-step): the NumPy path's numbers, one run and a
     batch of variants with other matrices, each equal to its own compiled run."""
-    from fwdstep.compiler import compile_batch
+    from fwdstep.structure.compiler import compile_batch
     path = tmp_path / "sampled.yaml"
     path.write_text(SAMPLED)
     d = fwdstep.load_diagram(str(path))
@@ -244,8 +244,8 @@ def test_event_arrays_are_the_numpy_paths_plan(tmp_path):
     """No compiling: the rows the compiled loop reads are plan_events' sub-steps, in order,
     with the discrete updates flagged, and an event at t_final gives the final record its
     right limit."""
-    from fwdstep import backend_numba
-    from fwdstep.events import plan_events
+    from fwdstep.compiled import backend_numba
+    from fwdstep.run.events import plan_events
     path = tmp_path / "sampled.yaml"
     path.write_text(SAMPLED.replace("t0: 0.0011", "t0: 0.0021"))   # 0.0021 + 7 T = 0.028
     d = fwdstep.load_diagram(str(path), {"simulation.t_final": 0.028})
@@ -283,7 +283,7 @@ simulation: {t_final: 0.05, step: 0.001, solver: rk4, log_every: 3}
 def test_payload_jump_inside_a_step_agrees_on_both_paths(tmp_path):
     """A plant whose parameters jump at a declared time off the grid (the split step): the
     NumPy path's numbers, one run and a batch of other gains (each its own compiled run)."""
-    from fwdstep.compiler import compile_batch
+    from fwdstep.structure.compiler import compile_batch
     path = tmp_path / "payload.yaml"
     path.write_text(PAYLOAD)
     d = fwdstep.load_diagram(str(path))
@@ -299,6 +299,6 @@ def test_payload_jump_inside_a_step_agrees_on_both_paths(tmp_path):
 
 
 def _plan_steps(d):
-    from fwdstep.events import plan_events
+    from fwdstep.run.events import plan_events
     cfg = d.spec.simulation
     return plan_events(d, cfg.step, cfg.n_steps).steps

@@ -1,4 +1,4 @@
-"""Exact discontinuities on a fixed step (fwdstep.events).
+"""Exact discontinuities on a fixed step (fwdstep.run.events).
 
 A source that jumps at T declares T; the run ends a step exactly at T, evaluates every stage
 of that step before the jump and every stage of the next one after it.  Integrals of
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.events import SNAP, plan_events
+from fwdstep.run.events import SNAP, plan_events
 
 
 def _run(tmp_path, text, name="d.yaml", **overrides):
@@ -67,17 +67,17 @@ def test_piecewise_constant_integral_and_values(tmp_path):
 def test_batches_stay_exact_across_step_times(tmp_path):
     """Variants whose steps jump at the same time batch (and equal their single runs bit for
     bit); variants that jump at different times never share a batch, whose steps would be
-    split at every variant's times (fwdstep.sweep: batches are exact)."""
+    split at every variant's times (fwdstep.sweeps.sweep: batches are exact)."""
     path = tmp_path / "d.yaml"
     path.write_text(INTEGRAL.format(kind="Step", params="after: A, time: T", solver="rk4")
                     .replace("blocks:", "parameters: {T: 0.3, A: 1.0}\nblocks:")
                     .replace("type: Integrator", "type: TransferFunction, num: [1], den: [1, 1]"))
-    specs = [fwdstep.spec.load_spec(str(path), {"T": 0.35, "A": A}) for A in (1.0, -2.0, 0.5)]
+    specs = [fwdstep.structure.spec.load_spec(str(path), {"T": 0.35, "A": A}) for A in (1.0, -2.0, 0.5)]
     batch = fwdstep.simulate(fwdstep.compile_batch(specs))
     for k, A in enumerate((1.0, -2.0, 0.5)):
         single = fwdstep.simulate(fwdstep.load_diagram(str(path), {"T": 0.35, "A": A}))
         np.testing.assert_array_equal(batch["i.y"][:, k], single["i.y"])
-    specs = [fwdstep.spec.load_spec(str(path), {"T": T}) for T in (0.3, 0.35)]
+    specs = [fwdstep.structure.spec.load_spec(str(path), {"T": T}) for T in (0.3, 0.35)]
     with pytest.raises(fwdstep.ConfigError, match="differ in structure"):
         fwdstep.compile_batch(specs)
 

@@ -1,4 +1,4 @@
-"""Sweeps on many processes (fwdstep.distributed): the numbers of the sequential run, every
+"""Sweeps on many processes (fwdstep.sweeps.distributed): the numbers of the sequential run, every
 finished batch on disk as it finishes, --resume runs only what is missing, --max-memory.
 
 The Dask test starts a real scheduler and two workers as separate processes
@@ -11,10 +11,10 @@ import os
 import numpy as np
 import pytest
 
-from fwdstep import cli
-import fwdstep.sweep as sweep_module
-from fwdstep.errors import ConfigError
-from fwdstep.sweep import METRICS, plan_batches, run_sweep
+from fwdstep.cli import arguments as cli
+import fwdstep.sweeps.sweep as sweep_module
+from fwdstep.core.errors import ConfigError
+from fwdstep.sweeps.sweep import METRICS, plan_batches, run_sweep
 
 LOOP = """
 parameters: {alpha: 4, gamma: 2, K: 20, q0: [0.1, -0.1]}
@@ -167,8 +167,8 @@ def test_cli_resume_and_existing_outdir(path, tmp_path, capsys):
 
 
 def test_memory_budget_counts_what_is_logged(path):
-    from fwdstep.compiler import instantiate_variants
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import instantiate_variants
+    from fwdstep.structure.spec import load_spec
     specs = [load_spec(path, {"K": k}) for k in range(1, 17)]
     blocks = instantiate_variants(specs)
     # e.y: 2 numbers x (150 steps / 3 + 2) rows x 8 bytes = 832 B, plus 12 states x 8 bytes

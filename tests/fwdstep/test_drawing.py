@@ -8,8 +8,8 @@ import sys
 import pytest
 
 import fwdstep
-from fwdstep.cli import main
-from fwdstep.drawing import (build_picture, diagram_dot, draw_diagram, equation_of,
+from fwdstep.cli.arguments import main
+from fwdstep.views.drawing import (build_picture, diagram_dot, draw_diagram, equation_of,
                              feedback_edges, layered_positions)
 
 needs_dot = pytest.mark.skipif(shutil.which("dot") is None, reason="graphviz dot not installed")
@@ -98,7 +98,7 @@ def test_graph_command_writes_svg_and_png(tmp_path, capsys):
 
 
 def test_matplotlib_fallback_draws_without_pyplot(tmp_path):
-    code = ("import sys, fwdstep; from fwdstep.drawing import draw_diagram; "
+    code = ("import sys, fwdstep; from fwdstep.views.drawing import draw_diagram; "
             "d = fwdstep.load_diagram('diagrams/theorem1.yaml'); "
             f"print(draw_diagram(d, {str(tmp_path / 'f.png')!r}, engine='matplotlib'), "
             "'matplotlib.pyplot' in sys.modules)")
@@ -125,7 +125,7 @@ def test_draw_refuses_a_directory(tmp_path):
 
 
 def test_a_subsystem_file_draws_with_its_ports_as_boxes(tmp_path):
-    from fwdstep.drawing import diagram_for_drawing, subsystem_ports
+    from fwdstep.views.drawing import diagram_for_drawing, subsystem_ports
     d = diagram_for_drawing("diagrams/lib/reference.yaml")       # does not compile alone
     pic = build_picture(d)
     subsystem_ports(pic, "diagrams/lib/reference.yaml", d)
@@ -150,7 +150,7 @@ def test_a_library_subsystem_with_open_shapes_draws_alone(tmp_path, capsys, name
     assert main(["graph", path, "-o", str(out), "--engine", "matplotlib"]) == 0
     assert capsys.readouterr().out == (f"wrote {out} ({len(doc['blocks'])} blocks, "
                                        "layout: matplotlib)\n")
-    from fwdstep.drawing import diagram_for_drawing, subsystem_ports
+    from fwdstep.views.drawing import diagram_for_drawing, subsystem_ports
     d = diagram_for_drawing(path)
     pic = build_picture(d)
     subsystem_ports(pic, path, d)
@@ -199,7 +199,7 @@ def test_graph_never_replaces_a_file_fwdstep_did_not_write(tmp_path, capsys):
 
 
 def test_tags_replace_the_wires_of_widely_used_signals_and_keep_every_connection():
-    from fwdstep.drawing import with_tags
+    from fwdstep.views.drawing import with_tags
     d = fwdstep.load_diagram("diagrams/theorem9.yaml")
     wired = build_picture(d)
     tagged = with_tags(wired, d.spec.aliases)
@@ -230,7 +230,7 @@ def test_tags_replace_the_wires_of_widely_used_signals_and_keep_every_connection
 
 
 def test_small_diagrams_keep_their_wires_and_large_ones_get_tags():
-    from fwdstep.drawing import picture_for
+    from fwdstep.views.drawing import picture_for
     small = fwdstep.load_diagram("diagrams/theorem1.yaml")
     large = fwdstep.load_diagram("diagrams/theorem6.yaml")
     def tags(d, mode):
@@ -245,10 +245,10 @@ def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path
     """Theorem 9 without graphviz: subsystems drawn as boxes by default (said on stdout), no
     two boxes overlap, every forward wire runs left to right through the gaps between
     layers, and the text is drawn at a readable size."""
-    import fwdstep.drawing
-    from fwdstep.drawing import _box_size, _layout, draw_layered, picture_for
+    import fwdstep.views.drawing
+    from fwdstep.views.drawing import _box_size, _layout, draw_layered, picture_for
     drawn = []                                # the layout is checked below; skip rasterising
-    monkeypatch.setattr(fwdstep.drawing, "layered_bytes",
+    monkeypatch.setattr(fwdstep.views.drawing, "layered_bytes",
                         lambda pic, fmt: drawn.append(pic) or b"\x89PNG\r\n\x1a\n")
     out = tmp_path / "t9.png"
     assert main(["graph", "diagrams/theorem9.yaml", "--engine", "matplotlib",

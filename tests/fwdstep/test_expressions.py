@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from fwdstep.errors import ExpressionError
-from fwdstep.expressions import FUNCTIONS, evaluate, names_in
+from fwdstep.core.errors import ExpressionError
+from fwdstep.core.expressions import FUNCTIONS, evaluate, names_in
 
 NS = {"a": 2.0, "alpha": 5.0, "v": np.ones(3), "K": np.ones((1000, 1000))}
 
@@ -192,7 +192,7 @@ def test_indexing_slicing_and_reshape_agree_with_numpy(src, expected):
 
 
 def test_a_yaml_1_1_flag_word_gets_a_hint():
-    from fwdstep.errors import DiagramError
-    from fwdstep.expressions import evaluate
+    from fwdstep.core.errors import DiagramError
+    from fwdstep.core.expressions import evaluate
     with pytest.raises(DiagramError, match="a flag is written true or false"):
         evaluate("yes", {})

@@ -3,7 +3,7 @@
 Two generators: random wiring of library blocks with random parameters, and random mutations
 of the shipped diagrams (deleted keys, swapped ports, wrong shapes, random scalars, changed
 types, renamed blocks).  Every example is loaded, validated, compiled and simulated for a few
-steps; the only acceptable exception is ``fwdstep.errors.FwdstepError``, and each example is
+steps; the only acceptable exception is ``fwdstep.core.errors.FwdstepError``, and each example is
 bounded by a wall-clock alarm, so a hang fails the test instead of stalling CI.
 
 Budget: ``FWDSTEP_FUZZ_EXAMPLES`` examples per generator (default 100, about 20 s in all);
@@ -29,12 +29,12 @@ import yaml
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from fwdstep.compiler import compile_spec
-from fwdstep.errors import FwdstepError
-from fwdstep.graph import instantiate
-from fwdstep.registry import load_library
-from fwdstep.simulate import simulate
-from fwdstep.spec import load_spec
+from fwdstep.structure.compiler import compile_spec
+from fwdstep.core.errors import FwdstepError
+from fwdstep.structure.graph import instantiate
+from fwdstep.core.registry import load_library
+from fwdstep.run.simulate import simulate
+from fwdstep.structure.spec import load_spec
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = int(os.environ.get("FWDSTEP_FUZZ_EXAMPLES", "100"))

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.outputs import MANIFEST_FILE, OutputDir, owned_files
+from fwdstep.results.outputs import MANIFEST_FILE, OutputDir, owned_files
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -192,7 +192,7 @@ def test_the_current_directory_is_written_in_place_not_swapped_away(tmp_path, ca
 
 def test_a_directory_whose_parent_is_not_writable_is_written_in_place(tmp_path, capsys,
                                                                        monkeypatch):
-    from fwdstep import outputs
+    from fwdstep.results import outputs
     outdir = tmp_path / "shared" / "results"
     outdir.mkdir(parents=True)
     (outdir / "notes.txt").write_text("mine")
@@ -265,11 +265,11 @@ def test_early_ctrl_c_is_one_line_never_a_traceback(tmp_path, signum, exit_code,
 def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
     class Finder:
         def find_spec(self, name, path=None, target=None):
-            if name == "fwdstep.commands":
+            if name == "fwdstep.cli.commands":
                 raise KeyboardInterrupt
             return None
 
-    monkeypatch.delitem(sys.modules, "fwdstep.commands", raising=False)
+    monkeypatch.delitem(sys.modules, "fwdstep.cli.commands", raising=False)
     monkeypatch.delattr(fwdstep, "commands", raising=False)
     monkeypatch.setattr(sys, "meta_path", [Finder()] + sys.meta_path)
     assert cli.main(["blocks"]) == 130
@@ -277,7 +277,7 @@ def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
 
 
 def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, monkeypatch):
-    from fwdstep import result as result_module
+    from fwdstep.results import result as result_module
     outdir = tmp_path / "out"
     real = result_module.Result.write_files
 
@@ -300,7 +300,7 @@ def test_a_signal_during_the_numba_compile_ends_the_run_after_it(tmp_path, capsy
     # swallowed ("Exception ignored ...") and leaves a broken function: the run then ended as
     # "error" with a RuntimeError.  The compile runs with signals deferred; the signal is acted
     # on right after it, at t = 0.  (The compile is replaced by the signal alone: no numba time.)
-    backend_numba = pytest.importorskip("fwdstep.backend_numba")
+    backend_numba = pytest.importorskip("fwdstep.compiled.backend_numba")
     monkeypatch.setattr(backend_numba.CompiledProgram, "compile",
                         lambda self: os.kill(os.getpid(), signal.SIGTERM))
     outdir = tmp_path / "out"
@@ -317,8 +317,8 @@ def test_a_signal_during_a_compiled_chunk_keeps_the_chunks_rows(tmp_path, capsys
                                                                  api):
     # numba never looks at signals: Python raised the signal the moment a chunk returned,
     # before its rows were counted, so a run interrupted in its second chunk kept no row of
-    # its first.  The signal now ends the run after the chunk (fwdstep.signals.held).
-    backend_numba = pytest.importorskip("fwdstep.backend_numba")
+    # its first.  The signal now ends the run after the chunk (fwdstep.core.signals.held).
+    backend_numba = pytest.importorskip("fwdstep.compiled.backend_numba")
     real = backend_numba.CompiledProgram.run
     calls = []
 
@@ -403,10 +403,10 @@ def test_log_budget_option_and_streaming_to_disk_give_the_same_result(tmp_path, 
 
 
 def test_log_budget_is_checked_by_the_python_api_before_allocation(tmp_path, monkeypatch):
-    from fwdstep.budgets import BudgetError
+    from fwdstep.core.budgets import BudgetError
     d = fwdstep.load_diagram(write(tmp_path, HUGE_LOG))
     allocated = []
-    monkeypatch.setattr("fwdstep.program.np.full", lambda *a, **k: allocated.append(a))
+    monkeypatch.setattr("fwdstep.run.program.np.full", lambda *a, **k: allocated.append(a))
     with pytest.raises(BudgetError) as info:
         fwdstep.simulate(d)
     assert str(info.value) == (
@@ -428,9 +428,9 @@ def test_a_sweep_batch_over_the_log_budget_is_refused_not_allocated(tmp_path):
     # 1 001 rows x 100 values x 8 bytes = 0.8 MB of metric per variant: planned batches
     # stay under --max-memory, and fwdstep.simulate refuses a batch above it (a safety net
     # for the plan: here the plan is bypassed by giving the batch a smaller budget)
-    from fwdstep.sweep import BatchJob, run_job
-    from fwdstep.compiler import instantiate_variants
-    from fwdstep.spec import load_spec
+    from fwdstep.sweeps.sweep import BatchJob, run_job
+    from fwdstep.structure.compiler import instantiate_variants
+    from fwdstep.structure.spec import load_spec
     path = write(tmp_path, SMALL_LOG.replace("t_final: 1,", "t_final: 0.1,").replace(
         "simulation:", "metrics: {error: int.y}\nsimulation:"))
     specs = [load_spec(path)] * 2
@@ -449,7 +449,7 @@ def test_parameter_evaluation_time_is_budgeted_and_stops_validation(tmp_path, ca
     # a clock that advances 10 s per reading: the budget (30 s) is spent while evaluating
     # the third parameter (readings: start 0, a 10, b 20, c 30, d 40 > 30)
     import types
-    from fwdstep import spec as spec_module
+    from fwdstep.structure import spec as spec_module
     clock = iter(range(0, 10_000, 10))
     monkeypatch.setattr(spec_module, "time", types.SimpleNamespace(monotonic=lambda: next(clock)))
     text = ("parameters:\n  a: 1\n  b: a + 1\n  c: b + 1\n  d: c + 1\n  e: d + 1\n"
@@ -475,7 +475,7 @@ def integrators(n: int, k: int) -> str:
 
 
 def test_fusion_never_builds_a_dense_state_matrix_of_every_state(tmp_path):
-    from fwdstep.linear import MAX_FUSED_ELEMENTS, plan_fusion
+    from fwdstep.core.linear import MAX_FUSED_ELEMENTS, plan_fusion
     d = fwdstep.load_diagram(write(tmp_path, integrators(1500, 4)))
     assert d.n_states ** 2 > MAX_FUSED_ELEMENTS          # 6000^2 = 3.6e7 dense: refused
     plan = plan_fusion(d.schedule, d.signal_shapes, d.constant_signals)
@@ -488,7 +488,7 @@ def test_fusion_never_builds_a_dense_state_matrix_of_every_state(tmp_path):
 
 @pytest.mark.parametrize("kind", ["zero", "identity", "diagonal", "sparse", "dense", "batched"])
 def test_structured_linear_products_equal_the_dense_product(kind):
-    from fwdstep.linear import _operator
+    from fwdstep.core.linear import _operator
     rng = np.random.default_rng(3)
     n = 300
     M = {"zero": np.zeros((n, n)), "identity": np.eye(n), "diagonal": np.diag(rng.normal(size=n)),
@@ -525,7 +525,7 @@ def test_a_sweep_into_a_directory_held_by_a_run_is_refused(tmp_path, capsys):
 STRESS_DRIVER = r"""
 import contextlib, io, json, resource, sys
 resource.setrlimit(resource.RLIMIT_AS, (CAP, CAP))
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 out = {}
 for name, argv in json.loads(sys.argv[1]).items():
     err = io.StringIO()

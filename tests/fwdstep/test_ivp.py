@@ -1,4 +1,4 @@
-"""The solve_ivp path (fwdstep.ivp): solver dop853 | radau | lsoda.
+"""The solve_ivp path (fwdstep.run.ivp): solver dop853 | radau | lsoda.
 
 Checked against an analytic solution with a jump off the grid (the breakpoints make it
 exact to the tolerance), against the fixed-step RK4 path at a tiny step on a nonlinear

@@ -1,10 +1,10 @@
-"""The batched helpers of block kernels (fwdstep.kernelops) against per-variant NumPy written
+"""The batched helpers of block kernels (fwdstep.core.kernelops) against per-variant NumPy written
 out here, including the broadcast of a batch axis of length 1; and (slow: numba compiles
-them) their numba twins in fwdstep.compiled_ops against the NumPy versions, to 1e-12."""
+them) their numba twins in fwdstep.compiled.compiled_ops against the NumPy versions, to 1e-12."""
 import numpy as np
 import pytest
 
-from fwdstep import kernelops as ko
+from fwdstep.core import kernelops as ko
 
 RNG = np.random.default_rng(7)
 
@@ -80,7 +80,7 @@ def test_symupper_is_symmetric_and_keeps_the_upper_triangle():
 @pytest.mark.parametrize("name,args,ref", CASES, ids=IDS)
 def test_numba_twins_equal_the_numpy_helpers(name, args, ref):
     pytest.importorskip("numba")
-    from fwdstep import compiled_ops
+    from fwdstep.compiled import compiled_ops
     got = getattr(compiled_ops, name)(*args)
     np.testing.assert_allclose(got, getattr(ko, name)(*args), rtol=0, atol=1e-12)
 

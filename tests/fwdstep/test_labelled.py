@@ -1,15 +1,15 @@
-"""Labelled results (fwdstep.labelled): a sweep as an xarray Dataset (variant x time x
+"""Labelled results (fwdstep.results.labelled): a sweep as an xarray Dataset (variant x time x
 component, swept parameters as coordinates) equal to each variant's own run, saved as
 NetCDF and loaded back unchanged; a single Result as Dataset and DataFrame."""
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.compiler import compile_spec
-from fwdstep.errors import DivergenceError
-from fwdstep.spec import load_spec
-from fwdstep.sweep import run_sweep
+from fwdstep.structure.compiler import compile_spec
+from fwdstep.core.errors import DivergenceError
+from fwdstep.structure.spec import load_spec
+from fwdstep.sweeps.sweep import run_sweep
 
 xr = pytest.importorskip("xarray")
 
@@ -75,7 +75,7 @@ def test_sweep_dataset_equals_each_variants_own_run(path, tmp_path):
 
 
 def test_netcdf_round_trip_through_the_cli(path, tmp_path):
-    from fwdstep.labelled import load_sweep
+    from fwdstep.results.labelled import load_sweep
     out = tmp_path / "out"
     assert cli.main(["sweep", path, "--grid", "K=10,-2000", "--netcdf", "--workers", "1",
                      "-o", str(out), "-q"]) == 3

@@ -8,10 +8,10 @@ import os
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.errors import ConfigError, OutputError
-from fwdstep.result import safe_path
+from fwdstep.core.errors import ConfigError, OutputError
+from fwdstep.results.result import safe_path
 
 DIAGRAM = """\
 blocks:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.errors import ConfigError, OutputError
-from fwdstep.plotting import (figure_specs, headline, plot_result, result_figures, signal_info)
+from fwdstep.core.errors import ConfigError, OutputError
+from fwdstep.results.plotting import (figure_specs, headline, plot_result, result_figures, signal_info)
 
 DIAGRAM = """
 blocks:
@@ -137,7 +137,7 @@ def test_a_batch_draws_every_variant(tmp_path):
     path = tmp_path / "d.yaml"
     path.write_text(DIAGRAM.replace("gain: -1", "gain: g").replace(
         "blocks:", "parameters: {g: -1}\nblocks:"))
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.spec import load_spec
     specs = [load_spec(str(path), {"g": -0.1 * (i + 1)}) for i in range(11)]
     r = fwdstep.simulate(fwdstep.compile_batch(specs))
     ax = result_figures(r)["decay"].axes[0]
@@ -195,7 +195,7 @@ def test_plotting_never_switches_the_callers_backend(tmp_path):
         import sys, matplotlib
         matplotlib.use("svg")
         import fwdstep
-        from fwdstep.plotting import plot_result
+        from fwdstep.results.plotting import plot_result
         r = fwdstep.simulate(fwdstep.load_diagram({str(tmp_path / 'd.yaml')!r}))
         r.plot()
         plot_result(r, {str(tmp_path / 'out')!r})

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.errors import ConfigError, ParameterError
+from fwdstep.core.errors import ConfigError, ParameterError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PLUGIN = os.path.join(ROOT, "examples", "plugins", "logistic.py")
@@ -47,8 +47,8 @@ def test_plugin_block_matches_the_closed_form(diagram):
 
 
 def test_plugin_block_batches_like_a_library_block(diagram):
-    from fwdstep.compiler import compile_batch
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_batch
+    from fwdstep.structure.spec import load_spec
     fwdstep.load_diagram(diagram, plugins=[PLUGIN])
     specs = [load_spec(diagram, {"r2": v}) for v in (0.5, 2.0, 4.0)]
     res = fwdstep.simulate(compile_batch(specs))
@@ -78,8 +78,8 @@ def test_missing_or_broken_plugin_is_one_line(tmp_path, diagram):
 def test_a_clash_with_a_library_block_is_refused(tmp_path, diagram):
     clash = tmp_path / "clash.py"
     clash.write_text(textwrap.dedent("""
-        from fwdstep.block import Block
-        from fwdstep.registry import register
+        from fwdstep.core.block import Block
+        from fwdstep.core.registry import register
 
         @register
         class Gain(Block):

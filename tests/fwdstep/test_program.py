@@ -1,4 +1,4 @@
-"""The generated step functions (fwdstep.program): how a batch's signals are copied.
+"""The generated step functions (fwdstep.run.program): how a batch's signals are copied.
 
 A (B, 2) signal written into columns of a wider buffer (a fused product's inputs, a block's
 slice of k_i) is copied through a view of one 16-byte item per pair when the batch is large
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import fwdstep
-import fwdstep.program as program
-from fwdstep.compiler import compile_batch, compile_spec
-from fwdstep.spec import load_spec
+import fwdstep.run.program as program
+from fwdstep.structure.compiler import compile_batch, compile_spec
+from fwdstep.structure.spec import load_spec
 
 
 def _target(B=300, width=7, at=3):

@@ -1,5 +1,5 @@
 """Blocks that call Python libraries run inside compiled runs (``compile_with = "objmode"``,
-fwdstep/python_blocks.py): the compiled loop calls their NumPy-path methods through numba's
+fwdstep/run/python_blocks.py): the compiled loop calls their NumPy-path methods through numba's
 object mode, one variant per call.
 
 Fast tests call the callbacks directly (no compiling): variant v of a stacked block gives what
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep import python_blocks
-from fwdstep.block import Block, Param
-from fwdstep.errors import BlockRuntimeError, ConfigError
-from fwdstep.registry import REGISTRY, register
+from fwdstep.run import python_blocks
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import BlockRuntimeError, ConfigError
+from fwdstep.core.registry import REGISTRY, register
 
 pytest.importorskip("numba")
 scipy_special = pytest.importorskip("scipy.special")
@@ -101,8 +101,8 @@ def cache(numba_cache):
 
 
 def _batch(path, overrides):
-    from fwdstep.compiler import compile_batch
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_batch
+    from fwdstep.structure.spec import load_spec
     return compile_batch([load_spec(path, o) for o in overrides])
 
 
@@ -204,7 +204,7 @@ def test_a_wrong_output_shape_names_block_port_and_shapes(leak):
 
 
 def test_compile_with_accepts_numba_or_objmode_only(leak):
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     d = fwdstep.load_diagram(leak)
     blk = _block(d, "f")
     assert backend_numba.refusal(blk) is None
@@ -219,7 +219,7 @@ def test_compile_with_accepts_numba_or_objmode_only(leak):
 
 def test_the_pinocchio_blocks_opt_in():
     pytest.importorskip("pinocchio")
-    from fwdstep import backend_numba
+    from fwdstep.compiled import backend_numba
     d = fwdstep.load_diagram(os.path.join(ROOT, "diagrams", "robots", "ur5_theorem1.yaml"))
     for name in ("arm", "Y"):
         blk = _block(d, name)
@@ -286,8 +286,8 @@ def test_a_robot_batch_equals_one_by_one_compiled_runs(robot):
     a batch gives its single compiled run (which test_compiled_diagrams compares with the
     NumPy path), and the first variant the NumPy path's."""
     pytest.importorskip("pinocchio")
-    from fwdstep.compiler import compile_batch, compile_spec
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_batch, compile_spec
+    from fwdstep.structure.spec import load_spec
     path = os.path.join(ROOT, "diagrams", "robots", f"{robot}_theorem1.yaml")
     overrides = [{"alpha": 3.0}, {"alpha": 4.0, "Gamma": 2.0}, {"alpha": 6.0}]
 

@@ -8,7 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from fwdstep.cli import main
+from fwdstep.cli.arguments import main
 
 DIAGRAM = """
 description: Two decaying joints, x' = g x.

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.block import Block, Param
-from fwdstep.errors import BlockRuntimeError, DivergenceError
-from fwdstep.registry import REGISTRY, register
+from fwdstep.core.block import Block, Param
+from fwdstep.core.errors import BlockRuntimeError, DivergenceError
+from fwdstep.core.registry import REGISTRY, register
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -345,7 +345,7 @@ connections:
 simulation: {t_final: 1, step: 0.01, bound: 1.0e300}
 metrics: {error: after.y}
 """
-    from fwdstep.sweep import run_sweep
+    from fwdstep.sweeps.sweep import run_sweep
     res = run_sweep(write(tmp_path, text), grid={"g": [1.0, 1.0e200]})
     assert [(v.status, v.diverged_at) for v in res.variants] == [("ok", None), ("diverged", 0.01)]
 
@@ -448,8 +448,8 @@ def test_an_unrecorded_output_that_stays_finite_is_ok(tmp_path):
 
 
 def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_path):
-    from fwdstep.result import error_metrics
-    from fwdstep.sweep import run_sweep
+    from fwdstep.results.result import error_metrics
+    from fwdstep.sweeps.sweep import run_sweep
     path = write(tmp_path, UNLOGGED)
     res = run_sweep(path, grid={"g": [1.0, 1.0e200, 3.0]}, workers=1)
     assert [size for size, _ in res.batches] == [3]                   # one batch of three
@@ -468,7 +468,7 @@ def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_pa
 
 
 def test_a_sweep_row_names_the_state_that_diverged_as_its_run_alone(tmp_path):
-    from fwdstep.sweep import run_sweep
+    from fwdstep.sweeps.sweep import run_sweep
     path = write(tmp_path, GROWTH.format(rate="rate", bound="1e6").replace("rate: rate",
                                                                             "rate: 1"))
     res = run_sweep(path, grid={"rate": [0.01, 100.0]}, workers=1)
@@ -507,7 +507,7 @@ def test_an_unrecorded_output_is_checked_on_the_compiled_backend(tmp_path):
                                "'y'[0] = inf is not finite; results up to that time are kept")
     assert info.value.block == "big" and info.value.result.t[-1] == pytest.approx(0.01)
     # one batch of three variants, run in parallel by the compiled program
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.spec import load_spec
     d = fwdstep.compile_batch([load_spec(path, {"g": g}) for g in (1.0, 1.0e200, 3.0)])
     r = fwdstep.simulate(d, backend="compiled")
     assert r.status == "partially diverged"

@@ -1,13 +1,13 @@
-"""Sampling designs (fwdstep.sampling): each design has the property that defines it, the
+"""Sampling designs (fwdstep.sweeps.sampling): each design has the property that defines it, the
 distributions have their moments and bounds, the same seed gives the same variants, and
 --seed-parameter gives each variant its own noise (equal to its own one-by-one run)."""
 import numpy as np
 import pytest
 from scipy import stats
 
-from fwdstep import cli
-from fwdstep.errors import ConfigError
-from fwdstep.sampling import Distribution, parse_random, unit_points, variant_values
+from fwdstep.cli import arguments as cli
+from fwdstep.core.errors import ConfigError
+from fwdstep.sweeps.sampling import Distribution, parse_random, unit_points, variant_values
 
 
 def test_latin_hypercube_puts_one_point_in_every_stratum():
@@ -89,9 +89,9 @@ metrics: {error: e.y}
 
 def test_each_variant_gets_its_own_seed(tmp_path):
     import fwdstep
-    from fwdstep.compiler import compile_spec
-    from fwdstep.spec import load_spec
-    from fwdstep.sweep import run_sweep
+    from fwdstep.structure.compiler import compile_spec
+    from fwdstep.structure.spec import load_spec
+    from fwdstep.sweeps.sweep import run_sweep
     path = tmp_path / "noisy.yaml"
     path.write_text(NOISY)
     result = run_sweep(str(path), {"K": [20, 30]}, seed=9, seed_parameter="noise_seed",

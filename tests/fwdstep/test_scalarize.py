@@ -1,4 +1,4 @@
-"""fwdstep.scalarize: kernels traced into scalar expressions (the compiled backend's scalar
+"""fwdstep.compiled.scalarize: kernels traced into scalar expressions (the compiled backend's scalar
 stages).  The traced graph is checked against the kernel itself run by NumPy, for every
 registered block whose kernels trace; the folds against IEEE arithmetic."""
 import math
@@ -7,11 +7,11 @@ import os
 import numpy as np
 import pytest
 
-pytest.importorskip("numba")             # the tracer runs fwdstep.compiled_ops' loops
+pytest.importorskip("numba")             # the tracer runs fwdstep.compiled.compiled_ops' loops
 
 import fwdstep  # noqa: E402
 from fwdstep import scalarize as sz  # noqa: E402
-from fwdstep.registry import REGISTRY, load_library  # noqa: E402
+from fwdstep.core.registry import REGISTRY, load_library  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -154,8 +154,8 @@ SPEED_CRITICAL = ["slotine_li", "theorem1", "theorem2", "theorem3", "theorem4", 
 def test_the_theorem_diagrams_trace_to_scalar_stages(name):
     """A change that made one of these untraceable would silently run it with the array
     code (10x slower compiled): they must trace."""
-    from fwdstep import backend_numba as bn
-    from fwdstep.finite import unlogged_signals
+    from fwdstep.compiled import backend_numba as bn
+    from fwdstep.run.finite import unlogged_signals
     d = fwdstep.load_diagram(os.path.join(ROOT, "diagrams", f"{name}.yaml"))
     shapes = [tuple(s) for s in d.signal_shapes]
     ops, fused = bn._ops_for(d.schedule, shapes, d.constant_signals)
@@ -163,17 +163,17 @@ def test_the_theorem_diagrams_trace_to_scalar_stages(name):
                          [d.signal_index[n] for n in d.logged], unlogged_signals(d), 4)
     assert st.n_nodes > 20
     import llvmlite.binding as llvm
-    from fwdstep.llvm_stage import stage_ir
+    from fwdstep.compiled.llvm_stage import stage_ir
     llvm.parse_assembly(stage_ir(st)).verify()   # valid LLVM IR
 
 
 # ------------------------------------------------------------------ LLVM machine code
 def _stage(exprs, checked=(), records=()):
     """A stage object with ``exprs`` as the derivative of len(exprs) states (x0 = 0.3,
-    x1 = 0.9 the first two), compiled by fwdstep.llvm_stage, and a ctypes caller."""
+    x1 = 0.9 the first two), compiled by fwdstep.compiled.llvm_stage, and a ctypes caller."""
     import ctypes
     import types
-    from fwdstep import llvm_stage
+    from fwdstep.compiled import llvm_stage
     tr = exprs[0].trace
     n = len(exprs)
     st = types.SimpleNamespace(

@@ -1,4 +1,4 @@
-"""The JSON Schema of the diagram format (fwdstep/schema.py, ``fwdstep schema``).
+"""The JSON Schema of the diagram format (fwdstep/structure/schema.py, ``fwdstep schema``).
 
 It is generated from the block registry, so these tests compare it with the registry itself
 and run it, through the independent ``jsonschema`` validator, over every shipped diagram
@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from fwdstep import cli
-from fwdstep.registry import load_library
-from fwdstep.schema import diagram_schema, schema_text
-from fwdstep.spec import SIMULATION_KEYS, TOP_LEVEL_KEYS
-from fwdstep.yamlio import read_yaml_file
+from fwdstep.cli import arguments as cli
+from fwdstep.core.registry import load_library
+from fwdstep.structure.schema import diagram_schema, schema_text
+from fwdstep.structure.spec import SIMULATION_KEYS, TOP_LEVEL_KEYS
+from fwdstep.core.yamlio import read_yaml_file
 
 jsonschema = pytest.importorskip("jsonschema")
 REPO = Path(__file__).resolve().parents[2]
@@ -93,7 +93,7 @@ def test_the_command_prints_or_writes_the_schema(capsys, tmp_path):
 
 
 def test_subsystem_keys_come_from_the_loader():
-    from fwdstep.spec import SUBSYSTEM_KEYS
+    from fwdstep.structure.spec import SUBSYSTEM_KEYS
     sub = diagram_schema()["definitions"]["block.subsystem"]
     assert set(sub["properties"]) == set(SUBSYSTEM_KEYS)
 
@@ -101,9 +101,9 @@ def test_subsystem_keys_come_from_the_loader():
 def test_the_reference_page_names_every_function_setting_section_and_metric():
     """docs/diagram-format.md is written by hand: it must not miss what the code offers."""
     import re
-    from fwdstep.expressions import CONSTANTS, FUNCTIONS
-    from fwdstep.result import METRIC_DEFINITIONS
-    from fwdstep.spec import SOLVER_NAMES, SUBSYSTEM_KEYS
+    from fwdstep.core.expressions import CONSTANTS, FUNCTIONS
+    from fwdstep.results.result import METRIC_DEFINITIONS
+    from fwdstep.structure.spec import SOLVER_NAMES, SUBSYSTEM_KEYS
     text = (REPO / "docs" / "diagram-format.md").read_text()
     quoted = set(re.findall(r"`([A-Za-z_][A-Za-z0-9_]*)", text))
     named = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))

@@ -1,4 +1,4 @@
-"""Where subsystem files come from (fwdstep/search.py) and what is never read.
+"""Where subsystem files come from (fwdstep/core/search.py) and what is never read.
 
 A ``file: lib/NAME.yaml`` is found next to the including diagram, then in the library shipped
 with fwdstep, then in ``FWDSTEP_PATH``; includes that leave those folders, absolute names and
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fwdstep import cli
+from fwdstep.cli import arguments as cli
 import fwdstep
-from fwdstep.errors import ConfigError
-from fwdstep.search import shipped_library
-from fwdstep.spec import load_spec
+from fwdstep.core.errors import ConfigError
+from fwdstep.core.search import shipped_library
+from fwdstep.structure.spec import load_spec
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -1,4 +1,4 @@
-"""Shapes inferred from the wiring (fwdstep/shapes.py).
+"""Shapes inferred from the wiring (fwdstep/structure/shapes.py).
 
 A block may leave out a shape parameter (Gain/Sum/Integrator/TransferFunction ``shape``,
 Product ``a_shape``/``b_shape``) when a connection fixes it.  Checked against analytic
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.errors import ShapeError
-from fwdstep.spec import load_spec
+from fwdstep.core.errors import ShapeError
+from fwdstep.structure.spec import load_spec
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -131,7 +131,7 @@ def test_no_shipped_diagram_writes_a_shape_the_wiring_fixes():
     """Every shape parameter a block can infer is left out of the shipped diagrams (what is
     left: LinearCombination, whose input is (*shape, K), so no port carries its shape)."""
     import re
-    from fwdstep.registry import load_library
+    from fwdstep.core.registry import load_library
     registry = load_library()
     found = []
     paths = sorted((REPO / "diagrams").glob("*.yaml")) + sorted((REPO / "diagrams" / "lib")

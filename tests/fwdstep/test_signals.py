@@ -1,4 +1,4 @@
-"""fwdstep.signals: the first handled signal ends a command, later ones are ignored.
+"""fwdstep.core.signals: the first handled signal ends a command, later ones are ignored.
 
 CI once printed the interruption twice: a second Ctrl-C arrived while the first was being
 reported and raised again.  These tests deliver the signals in-process, at chosen moments,
@@ -8,7 +8,7 @@ import signal
 
 import pytest
 
-from fwdstep import signals
+from fwdstep.core import signals
 
 
 def test_a_second_signal_after_the_first_is_ignored():

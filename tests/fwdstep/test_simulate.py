@@ -1,6 +1,6 @@
-"""The lean run program (fwdstep.program) against a plain reference stepper.
+"""The lean run program (fwdstep.run.program) against a plain reference stepper.
 
-``reference_run`` below is procedure Step of fwdstep/simulate.py written the obvious way:
+``reference_run`` below is procedure Step of fwdstep/run/simulate.py written the obvious way:
 a walk over the schedule per stage, a signal list, fresh arrays.  ``simulate`` must give
 the same numbers: bit for bit when linear blocks are called (``fuse=False``: the same
 operations in the same order), and to 1e-12 (relative to the signal's size) when they are
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.linear import LinearBlock, linear_form_of, plan_fusion
-from fwdstep.program import build_program
-from fwdstep.simulate import initial_state
-from fwdstep.solvers import TABLEAUX, step_plan
+from fwdstep.core.linear import LinearBlock, linear_form_of, plan_fusion
+from fwdstep.run.program import build_program
+from fwdstep.run.simulate import initial_state
+from fwdstep.run.solvers import TABLEAUX, step_plan
 
 LOOP = """
 parameters: {ell: 2, alpha: 4, gamma: 2}
@@ -253,10 +253,10 @@ def test_program_source_is_straight_line(loop):
 @pytest.mark.parametrize("name", ["theorem1", "theorem3", "theorem6", "theorem8", "pid_classic",
                                   "slotine_li_disturbed"])
 def test_shipped_diagrams_without_events_run_the_plain_procedure(name):
-    """Diagrams that declare no discontinuity times (fwdstep.events) take the unchanged
+    """Diagrams that declare no discontinuity times (fwdstep.run.events) take the unchanged
     path: bit for bit the reference stepper.  (Their fused runs were also compared with
     arrays saved before events existed: equal, docs/discrete-time.md.)"""
-    from fwdstep.events import plan_events
+    from fwdstep.run.events import plan_events
     d = fwdstep.load_diagram(f"diagrams/{name}.yaml", overrides={"simulation.t_final": 0.04})
     assert plan_events(d, d.spec.simulation.step, d.spec.simulation.n_steps) is None
     t_ref, ref = reference_run(d)
@@ -290,8 +290,8 @@ def test_a_time_only_block_with_several_unpacked_outputs(tmp_path):
     plugin = tmp_path / "clock.py"
     plugin.write_text('''
 import numpy as np
-from fwdstep.block import Block
-from fwdstep.registry import register
+from fwdstep.core.block import Block
+from fwdstep.core.registry import register
 
 
 def clock_output(t, x):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.solvers import TABLEAUX, integrate_ode
-from fwdstep.spec import load_spec
+from fwdstep.run.solvers import TABLEAUX, integrate_ode
+from fwdstep.structure.spec import load_spec
 
 OSCILLATOR = """
 parameters:
@@ -31,7 +31,7 @@ def _final_error(path, solver, step):
     spec = load_spec(str(path))
     spec.simulation.solver = solver
     spec.simulation.step = step
-    d = fwdstep.compiler.compile_spec(spec)
+    d = fwdstep.structure.compiler.compile_spec(spec)
     r = fwdstep.simulate(d)
     return abs(r["pos.y"][-1, 0] - np.cos(2.0 * r.t[-1]))
 

@@ -2,8 +2,8 @@
 import pytest
 
 import fwdstep
-from fwdstep.errors import ConfigError
-from fwdstep.spec import load_spec, parse_override
+from fwdstep.core.errors import ConfigError
+from fwdstep.structure.spec import load_spec, parse_override
 
 DIAGRAM = """
 parameters:
@@ -30,7 +30,7 @@ def test_simulation_settings_can_be_overridden(path):
                                  parse_override("simulation.solver=heun"),
                                  parse_override("k=0.5")]))
     assert (spec.simulation.t_final, spec.simulation.solver) == (3.0, "heun")
-    r = fwdstep.simulate(fwdstep.compiler.compile_spec(spec))
+    r = fwdstep.simulate(fwdstep.structure.compiler.compile_spec(spec))
     assert r.t[-1] == pytest.approx(3.0)
     assert r["x.y"][-1, 0] == pytest.approx(2.718281828459045 ** -1.5, rel=1e-5)
 
@@ -94,7 +94,7 @@ simulation: {t_final: -1, step: 0.1}
 
 
 def test_validate_reports_every_mistake_one_line_each(tmp_path, capsys):
-    from fwdstep import cli
+    from fwdstep.cli import arguments as cli
     path = tmp_path / "many.yaml"
     path.write_text(MANY_MISTAKES)
     assert cli.main(["validate", str(path)]) == 2
@@ -123,7 +123,7 @@ def test_validate_reports_every_mistake_one_line_each(tmp_path, capsys):
 
 
 def test_a_missing_simulation_section_is_stated(tmp_path):
-    from fwdstep.spec import defaults_note
+    from fwdstep.structure.spec import defaults_note
     path = tmp_path / "nosim.yaml"
     path.write_text("blocks:\n  c: {type: Constant, value: 1}\n")
     spec = load_spec(str(path))
@@ -181,7 +181,7 @@ def test_adaptation_gain_messages_say_what_is_wrong_with_the_value(tmp_path, gam
 
 def test_every_option_has_help_and_version_prints(capsys):
     import argparse
-    from fwdstep import cli
+    from fwdstep.cli import arguments as cli
     parser = cli.build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     missing = [f"{name} {a.option_strings or a.dest}" for name, sp in sub.choices.items()

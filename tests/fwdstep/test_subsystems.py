@@ -1,7 +1,7 @@
 """Subsystems (``type: subsystem``): flattening, names, parameters, and their errors.
 
 A subsystem is a diagram file used as a block.  These tests write small diagrams into a
-temporary folder, load them through ``fwdstep.spec.load_spec`` / ``fwdstep.load_diagram``,
+temporary folder, load them through ``fwdstep.structure.spec.load_spec`` / ``fwdstep.load_diagram``,
 and check: the flattened block names ``outer/inner/block``; that logged signals and
 ``Result`` lookups accept both the internal name and the subsystem port name; that
 parameters pass down (defaults, overrides, expressions over the parent's parameters,
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.errors import ConfigError, ParameterError, ShapeError, WiringError
-from fwdstep.spec import load_spec
+from fwdstep.core.errors import ConfigError, ParameterError, ShapeError, WiringError
+from fwdstep.structure.spec import load_spec
 
 GAIN = """
 parameters:
@@ -316,7 +316,7 @@ parameters:
 blocks:
   s: {type: subsystem, file: gain.yaml, parameters: {k: k2 + a}}
 """)
-    with pytest.raises(fwdstep.errors.ExpressionError) as err:
+    with pytest.raises(fwdstep.core.errors.ExpressionError) as err:
         load_spec(top)
     assert str(err.value).startswith(f"{top}:{line_of(top, 'k2 + a')}: ")
     assert "undefined name 'k2'" in str(err.value)
@@ -457,7 +457,7 @@ def test_missing_subsystem_file(tmp_path):
 blocks:
   s: {type: subsystem, file: nowhere.yaml}
 """)
-    with pytest.raises(fwdstep.errors.DiagramError, match="nowhere.yaml"):
+    with pytest.raises(fwdstep.core.errors.DiagramError, match="nowhere.yaml"):
         load_spec(top)
 
 
@@ -496,7 +496,7 @@ ports:
 
 def test_depth_limit_is_exact(tmp_path):
     """MAX_SUBSYSTEM_DEPTH levels of subsystems load; one more is refused."""
-    from fwdstep.spec import MAX_SUBSYSTEM_DEPTH
+    from fwdstep.structure.spec import MAX_SUBSYSTEM_DEPTH
     spec = load_spec(_chain(tmp_path / "ok", MAX_SUBSYSTEM_DEPTH))
     assert spec.blocks[0].name == "/".join(["s"] * MAX_SUBSYSTEM_DEPTH + ["g"])
     assert spec.aliases["s.y"] == spec.blocks[0].name + ".y"
@@ -517,8 +517,8 @@ blocks:
 # ----------------------------------------------------------------- --set paths (issue 15)
 from pathlib import Path       # noqa: E402
 
-import cli                     # noqa: E402
-from fwdstep.errors import DiagramError  # noqa: E402
+from fwdstep.cli import arguments as cli  # noqa: E402
+from fwdstep.core.errors import DiagramError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 

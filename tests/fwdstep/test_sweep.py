@@ -1,4 +1,4 @@
-"""Sweeps (fwdstep.sweep, ``fwdstep sweep``): batched variants give the one-by-one numbers.
+"""Sweeps (fwdstep.sweeps.sweep, ``fwdstep sweep``): batched variants give the one-by-one numbers.
 
 The sweep groups variants by structure (``ell`` changes the state size: one batch per ell),
 runs each group as one batch, and writes one CSV row per variant.  The batched table must
@@ -12,10 +12,10 @@ import os
 import numpy as np
 import pytest
 
-from fwdstep import cli
-from fwdstep.errors import ConfigError
-from fwdstep.sampling import Distribution
-from fwdstep.sweep import (METRICS, parse_grid, parse_random, run_sweep, split_values,
+from fwdstep.cli import arguments as cli
+from fwdstep.core.errors import ConfigError
+from fwdstep.sweeps.sampling import Distribution
+from fwdstep.sweeps.sweep import (METRICS, parse_grid, parse_random, run_sweep, split_values,
                            variant_values)
 
 LOOP = """
@@ -232,8 +232,8 @@ EVERY_VARIANT = [
 
 def _every_variant(path):
     """EVERY_VARIANT, plus an adaptive solver when this fwdstep has one."""
-    from fwdstep.errors import ConfigError
-    from fwdstep.spec import load_spec
+    from fwdstep.core.errors import ConfigError
+    from fwdstep.structure.spec import load_spec
     out = list(EVERY_VARIANT)
     try:
         load_spec(path, {"simulation.solver": "dop853"})
@@ -245,9 +245,9 @@ def _every_variant(path):
 
 def _alone(path, values):
     import fwdstep
-    from fwdstep.compiler import compile_spec
-    from fwdstep.errors import DivergenceError
-    from fwdstep.spec import load_spec
+    from fwdstep.structure.compiler import compile_spec
+    from fwdstep.core.errors import DivergenceError
+    from fwdstep.structure.spec import load_spec
     d = compile_spec(load_spec(path, values))
     d.logged = [d.resolve("e.y")]
     try:
@@ -314,9 +314,9 @@ def test_the_reported_examples(capsys, tmp_path):
 def test_unbatchable_settings_run_one_variant_per_batch(path):
     """An adaptive solver picks one step sequence per run: such variants are never batched.
     The compiled backend batches (run_batch), but never with NumPy-backend variants."""
-    from fwdstep.compiler import instantiate_variants
-    from fwdstep.spec import load_spec
-    from fwdstep.sweep import plan_batches
+    from fwdstep.structure.compiler import instantiate_variants
+    from fwdstep.structure.spec import load_spec
+    from fwdstep.sweeps.sweep import plan_batches
     specs = [load_spec(path, {"K": k, "simulation.backend": b})
              for k in (10, 20, 30) for b in ("numpy", "compiled")]
     specs += [load_spec(path, {"K": k, "simulation.solver": "dop853"}) for k in (10, 20)]
@@ -330,9 +330,9 @@ def test_compiled_sweep_equals_one_by_one_compiled_runs():
     (``CompiledProgram.run_batch``); each variant equals its own compiled run (1e-12),
     including variants with another step (a separate batch).  Compiles numba code."""
     pytest.importorskip("numba")
-    from fwdstep.compiler import compile_spec
-    from fwdstep.spec import load_spec
-    from fwdstep.simulate import simulate
+    from fwdstep.structure.compiler import compile_spec
+    from fwdstep.structure.spec import load_spec
+    from fwdstep.run.simulate import simulate
     path = "diagrams/slotine_li.yaml"
     result = run_sweep(path, grid={"Lambda": [2.0, 5.0, 9.0],
                                    "simulation.step": [0.001, 0.002]},
@@ -367,11 +367,11 @@ def test_backend_compiled_without_numba_is_one_line(path, tmp_path, monkeypatch,
 
 
 def test_batch_metrics_are_each_variants_own():
-    """A sweep computes the metrics of a whole batch at once (fwdstep.result.
+    """A sweep computes the metrics of a whole batch at once (fwdstep.results.result.
     batch_error_metrics): each variant's numbers are bit for bit those of its own
     error_metrics call (the sums run over its own row of the batch), and error_metrics
     agrees with the definitions computed plainly; NaN, inf and near-overflow errors too."""
-    from fwdstep.result import batch_error_metrics, error_metrics
+    from fwdstep.results.result import batch_error_metrics, error_metrics
     rng = np.random.default_rng(3)
     t = np.cumsum(rng.random(1001))
     e = rng.standard_normal((1001, 7, 2)) * 10.0 ** rng.integers(-5, 5, size=(1, 7, 1))
@@ -395,11 +395,11 @@ def test_batch_metrics_are_each_variants_own():
 
 def test_the_garbage_collector_is_left_as_it_was(path):
     """A sweep pauses Python's collector while it derives the variants and freezes them
-    while the batches run (fwdstep.sweep: _collector_paused, _variants_frozen); afterwards,
+    while the batches run (fwdstep.sweeps.sweep: _collector_paused, _variants_frozen); afterwards,
     after a refused variant too, the collector is as the caller had it: on or off, and with
     the caller's own frozen objects still frozen."""
     import gc
-    from fwdstep.errors import DiagramError
+    from fwdstep.core.errors import DiagramError
     assert gc.isenabled() and gc.get_freeze_count() == 0
     seen = []
     run_sweep(path, {"gamma": [1, 2]}, workers=1,

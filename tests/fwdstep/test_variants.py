@@ -1,4 +1,4 @@
-"""fwdstep.variants: a variant's derived spec equals its own full ``load_spec``.
+"""fwdstep.sweeps.variants: a variant's derived spec equals its own full ``load_spec``.
 
 The sweep derives every variant's spec from one load of the diagram (only what the swept
 values reach is evaluated again).  Each derived spec must equal what loading the diagram with
@@ -13,9 +13,9 @@ import os
 import numpy as np
 import pytest
 
-from fwdstep.compiler import _value_key
-from fwdstep.spec import load_spec
-from fwdstep.variants import VariantSpecs
+from fwdstep.structure.compiler import _value_key
+from fwdstep.structure.spec import load_spec
+from fwdstep.sweeps.variants import VariantSpecs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -1,6 +1,6 @@
 """YAML safety: diagrams are data, never code, and never a resource bomb.
 
-fwdstep.yamlio must refuse Python and other non-standard tags with one line, refuse alias
+fwdstep.core.yamlio must refuse Python and other non-standard tags with one line, refuse alias
 bombs and deep nesting quickly, refuse oversized files before reading them, refuse duplicate
 keys, and never be built on an unsafe PyYAML loader.
 """
@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 import fwdstep
-from fwdstep import yamlio
-from fwdstep.errors import YamlError
-from fwdstep.yamlio import parse_yaml_text, read_yaml_file
+from fwdstep.core import yamlio
+from fwdstep.core.errors import YamlError
+from fwdstep.core.yamlio import parse_yaml_text, read_yaml_file
 
 REPO = Path(__file__).resolve().parents[2]
 PLAIN = "(mappings, lists, numbers, strings, booleans)"
@@ -232,7 +232,7 @@ def test_control_characters_are_reported_at_line_and_column(char, name, kind):
 
 
 def test_control_character_in_a_set_value_is_one_line(capsys, tmp_path):
-    from fwdstep import cli
+    from fwdstep.cli import arguments as cli
     path = tmp_path / "d.yaml"
     path.write_text("parameters:\n  k: 1\nblocks:\n  c: {type: Constant, value: [1]}\n")
     assert cli.main(["validate", str(path), "--set", "k=[1, 2\x1b[2J]"]) == 2
@@ -266,6 +266,6 @@ def test_values_are_counted_exactly_below_the_separator_estimate(monkeypatch):
 def test_only_true_and_false_are_flags():
     """YAML 1.1 read yes/no/on/off as booleans: a parameter named `off` became False and
     failed as "parameter name 'False' is not a valid name"."""
-    from fwdstep.yamlio import parse_yaml_text
+    from fwdstep.core.yamlio import parse_yaml_text
     doc = parse_yaml_text("off: 1\non: [yes, no, Off]\nt: true\nf: FALSE\n", "x.yaml")
     assert doc == {"off": 1, "on": ["yes", "no", "Off"], "t": True, "f": False}

@@ -1,0 +1,200 @@
+"""What the command-line verbs do (``cli.py`` only parses arguments and calls these).
+
+Every verb returns an exit code:
+  0 success; 2 the diagram, an option or the output directory is wrong (one line on stderr);
+  3 the simulation diverged; 4 a block raised at run time; 128 + signal number when
+  interrupted: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (``fwdstep.core.signals``).
+Partial results are written before a non-zero exit whenever anything was computed, as one
+transaction into a locked output directory (``fwdstep.results.outputs``).
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+from fwdstep.core.errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
+                     OutputError, SimulationError, one_line, printable)
+from fwdstep.results.result import RESULT_FILE, SUMMARY_FILE
+
+EXIT_OK, EXIT_INPUT, EXIT_DIVERGED, EXIT_BLOCK, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+
+
+def _err(msg: str) -> None:
+    print(f"fwdstep: {one_line(str(msg))}", file=sys.stderr)
+
+
+def _overrides(pairs) -> dict:
+    from fwdstep.structure.spec import parse_override
+    out = {}
+    for text in pairs or []:
+        name, value = parse_override(text)
+        out[name] = value
+    return out
+
+
+def default_outdir(path: str) -> str:
+    return os.path.join("out", os.path.splitext(os.path.basename(path))[0])
+
+
+def run_files(d, plots: bool, formats=("png",)) -> list:
+    """Names of the files ``fwdstep run`` writes for compiled diagram ``d``."""
+    names = [RESULT_FILE, SUMMARY_FILE]
+    if plots:
+        from fwdstep.results.plotting import figure_specs
+        from fwdstep.results.result import Result
+        import numpy as np
+        names += [f"{fig}.{fmt}" for fig in figure_specs(Result(np.empty(0), {}, diagram=d))
+                  for fmt in formats]
+    return names
+
+
+def _progress(frac: float) -> None:
+    print(f"  {100 * frac:5.1f}% simulated", file=sys.stderr, flush=True)
+
+
+def cmd_validate(path: str, sets=None) -> int:
+    from fwdstep.core.budgets import check_log
+    from fwdstep.structure.compiler import load_diagram
+    try:
+        d = load_diagram(path, _overrides(sets))
+        check_log(d)                    # never ok for a run that cannot start
+    except DiagramError as exc:
+        for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
+            _err(str(each))
+        return EXIT_INPUT
+    print(f"{printable(path)}: ok — {len(d.schedule)} blocks, {d.n_states} states, "
+          f"{len(d.signal_index)} signals, {d.spec.simulation.n_steps} steps of "
+          f"{d.spec.simulation.step:g} s with {d.spec.simulation.solver}")
+    _note_defaults(d)
+    return EXIT_OK
+
+
+def _note_defaults(d) -> None:
+    """A diagram that leaves out simulation settings runs with stated defaults, never silently."""
+    from fwdstep.structure.spec import defaults_note
+    note = defaults_note(d.spec.simulation)
+    if note:
+        print(f"fwdstep: note: {note}", file=sys.stderr)
+
+
+def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False,
+            plots: bool = True, quiet: bool = False, backend: str | None = None,
+            formats=("png",), max_log_memory: str | None = None,
+            log_to_disk: bool = False) -> int:
+    """``fwdstep run``: the output directory is claimed (locked, checked) and the log's size
+    checked (``fwdstep.core.budgets``) before the simulation starts; results are written as one
+    transaction (``fwdstep.results.outputs``) after it, partial when it diverged, failed or was
+    interrupted (SIGINT/SIGTERM/SIGHUP).  ``log_to_disk`` records into memory-mapped files
+    beside the output directory instead of memory."""
+    import shutil
+    import tempfile
+    from fwdstep.core.budgets import check_log, parse_size
+    from fwdstep.structure.compiler import load_diagram
+    from fwdstep.results.outputs import OutputDir
+    outdir = outdir or default_outdir(path)
+    log_dir = limit = None
+    try:
+        d = load_diagram(path, _overrides(sets))
+        limit = parse_size(max_log_memory) if max_log_memory else None
+        if not log_to_disk:             # before the output directory is claimed
+            check_log(d, limit)
+        out = OutputDir(outdir, force, expected=run_files(d, plots, formats))
+        out.__enter__()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    if not quiet:
+        _note_defaults(d)
+    try:
+        if log_to_disk:
+            log_dir = tempfile.mkdtemp(prefix=f".{out.name}.fwdstep-log-", dir=out.parent)
+            check_log(d, to_disk=log_dir)   # the CLI's words; simulate checks it again
+        return _run_into(out, d, plots, quiet, backend, formats, log_dir, limit)
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    finally:
+        out.__exit__(None, None, None)
+        if log_dir is not None:
+            shutil.rmtree(log_dir, ignore_errors=True)
+
+
+def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
+              max_log_bytes=None) -> int:
+    from fwdstep.run.simulate import simulate
+    from fwdstep.core import signals
+    code = EXIT_OK
+    progress = None if quiet else _progress
+    try:
+        result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
+                          max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
+    except SimulationError as exc:
+        result = exc.result
+        _err(str(exc))
+        code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
+                EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else
+                signals.exit_code(exc))
+        if result is None:
+            return code
+    try:
+        with signals.deferred():                  # a signal now: the results still land
+            written = result.write_files(out.dir)
+            if plots and len(result.t) and code != EXIT_BLOCK:
+                from fwdstep.results.plotting import plot_result
+                written += plot_result(result, out.dir, formats=formats)
+            written = out.commit()
+    except OSError as exc:
+        _err(f"cannot write results to {out.requested}: {exc}")
+        return EXIT_INPUT
+    late = signals.pending()
+    if late is not None:
+        _err(f"{late.reason} while the results were written; they are complete")
+        code = code or signals.exit_code(late)
+    if not quiet:
+        m = result.metrics()
+        reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
+        line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"
+        if m and m.get("final_error_norm") is not None:     # names: fwdstep.results.result
+            line += (f"; final |e|_2 = {m['final_error_norm']:.3e}; over the last "
+                     f"{int(100 * d.spec.metrics.get('tail', 0.2))}%: max |e|_2 = "
+                     f"{m['tail_error_norm_max']:.3e}, largest joint max_i |e_i| = "
+                     f"{m['tail_error_max_abs']:.3e}; RMS |e|_2 = {m['rms_error_norm']:.3e}")
+        print(line)
+        print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
+    return code
+
+
+def cmd_blocks(name: str | None = None) -> int:
+    from fwdstep.core.registry import load_library
+    reg = load_library()
+    if name is None:
+        for tname in sorted(reg):
+            cls = reg[tname]
+            try:
+                blk = cls("example", **cls.example)
+                ins = ", ".join(f"{p.name}{list(p.shape)}" for p in blk.inputs.values())
+                outs = ", ".join(f"{p.name}{list(p.shape)}" for p in blk.outputs.values())
+                ports = f"in: {ins or '-'}; out: {outs or '-'}"
+            except FwdstepError:
+                ports = ""
+            params = ", ".join(cls.params)
+            print(f"{tname:22s} {cls.summary()}")
+            print(f"{'':22s}   {ports} (shapes of the example)")
+            print(f"{'':22s}   parameters: {params or '-'}")
+        return EXIT_OK
+    if name not in reg:
+        from fwdstep.core.registry import lookup
+        try:
+            lookup(name)
+        except DiagramError as exc:
+            _err(str(exc))
+            return EXIT_INPUT
+    cls = reg[name]
+    print(f"{name}\n{'=' * len(name)}\n")
+    import inspect
+    print(inspect.cleandoc(cls.__doc__ or ""))
+    print("\nParameters (kind, default):")
+    for key, decl in cls.params.items():
+        default = "required" if decl.required else repr(decl.default)
+        print(f"  {key:16s} {decl.kind:7s} {default:12s} {decl.doc}")
+    return EXIT_OK

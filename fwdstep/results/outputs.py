@@ -1,0 +1,368 @@
+"""An output directory as a transaction: the one way fwdstep writes results to disk.
+
+Every writer (``fwdstep run``, sweeps, figures, reports) goes through ``OutputDir``::
+
+    with OutputDir(outdir, force=force, expected=["result.npz", "run.png"]) as out:
+        ...                              # simulate
+        result.write_files(out.dir)      # any writer: plain files into out.dir
+        plot_result(result, out.dir)
+        written = out.commit()           # one rename puts everything in place
+
+What it promises:
+
+* **One run per directory.**  ``OutputDir`` takes an exclusive lock (``fcntl.flock`` on
+  ``<parent>/.<name>.fwdstep-lock``) when it is entered; a second run into the same directory
+  is refused at once with the holder's pid, host, command and start time.  A lock left by a
+  killed process is released by the kernel, so it never needs cleaning up by hand.
+* **All or nothing.**  Writers write into ``out.dir``, a private staging directory (mode
+  0700, beside the target, same file system).  ``commit()`` writes ``manifest.json`` (the
+  files of this run with their sizes and SHA-256) and moves the staging directory into place
+  with one ``rename``.  When the target already exists it is first renamed aside, and what
+  this run did not supersede (the user's files, earlier figures) is moved into the new
+  directory (earlier fwdstep files stay in the manifest): at every instant the
+  target holds either the complete old results or the complete new ones, never a new
+  ``summary.json`` beside an old ``result.npz``.  (The one exception: an existing directory
+  that is, or contains, the current directory is not renamed away under the user's shell,
+  and one whose parent the user cannot write holds its own lock and staging directory;
+  there the files are moved in one by one, the manifest last.)  Leaving the ``with`` block
+  without ``commit()`` removes the staging directory.
+* **Never replaces what fwdstep did not write.**  An existing entry is fwdstep's when
+  ``manifest.json`` lists it (or, for directories written before manifests existed, when it
+  is a regular ``result.npz``/``summary.json``/``sweep.csv``).  ``force`` allows replacing
+  fwdstep's own results; nothing, not even ``force``, replaces another file, a directory or a
+  symbolic link with the same name as a new file.  ``expected`` names the files a run will
+  write, so these refusals happen before any work is done.
+* **A killed writer leaves nothing half done.**  The next run into the directory (holding
+  the lock, so nobody else is writing) puts back a directory a killed commit had renamed
+  aside and removes abandoned staging directories.
+* **Symbolic links are not followed.**  New files are created in the fresh staging
+  directory, where nobody else can plant a link; links in the old directory are moved like
+  any other foreign entry, never written through.
+
+A writer that must put files in place while it is still running (a sweep keeping finished
+variants for ``--resume``) can hold ``OutputDir.lock_only(outdir)`` and write each file with
+``fwdstep.results.result.atomic_write`` into the directory itself.
+"""
+from __future__ import annotations
+
+import contextlib
+import datetime
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import socket
+import stat
+import sys
+import tempfile
+
+from fwdstep.core.errors import OutputError, printable
+
+MANIFEST_FILE = "manifest.json"
+#: files fwdstep wrote before manifests existed (regular files with these names are ours)
+LEGACY_FILES = ("result.npz", "summary.json", "sweep.csv")
+
+
+class OutputDir:
+    """See the module docstring.  ``expected``: names of the files this run will write (the
+    first one that already exists decides the "pass --force" message)."""
+
+    def __init__(self, outdir: str, force: bool = False, expected=()):
+        self.requested = outdir
+        self.force = force
+        self.expected = list(expected)
+        self.target = os.path.join(os.path.realpath(os.path.dirname(os.path.abspath(outdir))
+                                                    or "/"),
+                                   os.path.basename(os.path.abspath(outdir)))
+        if os.path.islink(self.target):          # -o pointing at a link: the user's choice
+            self.target = os.path.realpath(self.target)
+        self.parent = os.path.dirname(self.target)
+        self.name = os.path.basename(self.target)
+        # where the lock and the staging directory live: beside the target, or inside it
+        # when only the target (not its parent) is writable (see ``_place``)
+        self.home, self.prefix, self.inside = self.parent, f".{self.name}.fwdstep-", False
+        self.dir: str | None = None
+        self._lock_fd: int | None = None
+        self._committed = False
+        self._keep = False                         # staging kept when commit was refused
+
+    # ------------------------------------------------------------------ enter / leave
+    def __enter__(self) -> "OutputDir":
+        self._check_target()
+        try:
+            os.makedirs(self.parent, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create {printable(self.parent)}: "
+                              f"{exc.strerror}") from None
+        self._place()
+        self._lock()
+        try:
+            self._recover()
+            self._check_existing()
+            self.dir = tempfile.mkdtemp(prefix=f"{self.prefix}new-", dir=self.home)
+        except BaseException:
+            self._unlock()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        try:
+            if not self._committed and not self._keep and self.dir is not None:
+                shutil.rmtree(self.dir, ignore_errors=True)
+        finally:
+            self._unlock()
+        return False
+
+    @classmethod
+    @contextlib.contextmanager
+    def lock_only(cls, outdir: str, force: bool = False, expected=()):
+        """Hold the directory's lock (and check ``expected`` as ``OutputDir`` does) without
+        staging: for writers that must put files in place while they run."""
+        out = cls(outdir, force, expected)
+        out._check_target()
+        os.makedirs(out.parent, exist_ok=True)
+        out._place()
+        out._lock()
+        try:
+            out._recover()
+            out._check_existing()
+            yield out
+        finally:
+            out._unlock()
+
+    # ------------------------------------------------------------------ checks
+    def _check_target(self) -> None:
+        if os.path.lexists(self.target) and not os.path.isdir(self.target):
+            raise OutputError(f"output directory {printable(self.requested)} exists and is not "
+                              "a directory")
+
+    def _place(self) -> None:
+        """An existing, writable target in a directory the user cannot write to (a results
+        folder in a shared project): lock and stage inside it, commit file by file."""
+        if (os.path.isdir(self.target) and not os.access(self.parent, os.W_OK | os.X_OK)
+                and os.access(self.target, os.W_OK | os.X_OK)):
+            self.home, self.prefix, self.inside = self.target, ".fwdstep-", True
+
+    def _recover(self) -> None:
+        """Under the lock, leftovers of a writer that was killed (SIGKILL, power loss) are
+        its own: a directory renamed aside with no new one in place is put back (the
+        complete old results), and abandoned staging directories are removed."""
+        prefix = self.prefix
+        try:
+            entries = sorted(os.listdir(self.home))
+        except OSError:
+            return
+        for entry in entries:
+            path = os.path.join(self.home, entry)
+            if not entry.startswith(prefix) or os.path.islink(path) or not os.path.isdir(path):
+                continue
+            kind = entry[len(prefix):].split("-", 1)[0]
+            if kind == "old" and not self.inside and not os.path.lexists(self.target):
+                os.rename(path, self.target)
+            elif kind in ("old", "new") and os.stat(path).st_uid == os.getuid():
+                shutil.rmtree(path, ignore_errors=True)
+
+    def _check_existing(self) -> None:
+        if not os.path.isdir(self.target):
+            return
+        if foreign_manifest(self.target):
+            raise OutputError(_not_ours(os.path.join(self.requested, MANIFEST_FILE),
+                                        os.path.join(self.target, MANIFEST_FILE)))
+        ours = owned_files(self.target)
+        existing = [n for n in self.expected if os.path.lexists(os.path.join(self.target, n))]
+        for n in existing:
+            if n not in ours:
+                raise OutputError(_not_ours(os.path.join(self.requested, n),
+                                            os.path.join(self.target, n)))
+        if existing and not self.force:
+            raise OutputError(f"{printable(os.path.join(self.requested, existing[0]))} already "
+                              "exists; pass --force to overwrite it or -o to choose another "
+                              "directory")
+
+    # ------------------------------------------------------------------ lock
+    def _lock_path(self) -> str:
+        return os.path.join(self.home, f"{self.prefix}lock")
+
+    def _lock(self) -> None:
+        path = self._lock_path()
+        while True:
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise OutputError(f"cannot lock the output directory {printable(self.requested)}"
+                                  f": {exc.strerror}") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _read_small(fd)
+                os.close(fd)
+                raise OutputError(f"output directory {printable(self.requested)} is being "
+                                  f"written by another fwdstep run ({printable(holder)}); wait "
+                                  "for it to finish or choose another directory with -o") from None
+            # the previous holder may have removed the file between our open and flock
+            try:
+                same = os.fstat(fd).st_ino == os.stat(path, follow_symlinks=False).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        started = datetime.datetime.now().isoformat(timespec="seconds")
+        command = " ".join(os.path.basename(a) if i == 0 else a
+                           for i, a in enumerate(sys.argv))[:200]
+        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}, started {started}: "
+                     f"{command}".encode("utf-8", "replace"))
+        self._lock_fd = fd
+
+    def _unlock(self) -> None:
+        if self._lock_fd is None:
+            return
+        with contextlib.suppress(OSError):
+            os.unlink(self._lock_path())          # removed while still held: no race
+        os.close(self._lock_fd)
+        self._lock_fd = None
+
+    # ------------------------------------------------------------------ commit
+    def commit(self) -> list:
+        """Write the manifest and move everything into place; returns the final paths (as
+        the user named the directory) of the files written, manifest last."""
+        from fwdstep.core.signals import deferred
+        if self.dir is None or self._committed:
+            raise OutputError("commit() outside the with block or twice")
+        with deferred():
+            names = sorted(os.listdir(self.dir))
+            files = {n: _describe(os.path.join(self.dir, n)) for n in names}
+            exists = os.path.isdir(self.target)
+            if exists:                             # earlier results stay fwdstep's
+                if foreign_manifest(self.target):
+                    self._keep = True
+                    raise OutputError(
+                        _not_ours(os.path.join(self.requested, MANIFEST_FILE),
+                                  os.path.join(self.target, MANIFEST_FILE)) +
+                        f"; this run's files are kept in {printable(self.dir)}")
+                ours = owned_files(self.target)
+                for n in names:                    # re-checked: the user may have acted since
+                    old = os.path.join(self.target, n)
+                    if os.path.lexists(old) and n not in ours:
+                        self._keep = True
+                        raise OutputError(_not_ours(os.path.join(self.requested, n), old) +
+                                          f"; this run's files are kept in {printable(self.dir)}")
+                for n in sorted(ours - set(names) - {MANIFEST_FILE}):
+                    files[n] = _describe(os.path.join(self.target, n))
+            with open(os.path.join(self.dir, MANIFEST_FILE), "w") as fh:
+                json.dump({"written_by": "fwdstep", "files": files}, fh, indent=2)
+            os.chmod(self.dir, 0o777 & ~_umask())
+            try:
+                if exists and (self.inside or _holds_cwd(self.target)):
+                    self._in_place(names)
+                elif exists:
+                    self._swap(set(names))
+                else:
+                    os.rename(self.dir, self.target)
+            except OSError as exc:                 # nothing computed is lost
+                if os.path.isdir(self.dir):
+                    self._keep = True
+                    raise OutputError(f"cannot move the results into "
+                                      f"{printable(self.requested)}: {exc.strerror or exc}; "
+                                      f"they are kept in {printable(self.dir)}") from None
+                raise
+            self._committed = True
+        return [os.path.join(self.requested, n) for n in names + [MANIFEST_FILE]]
+
+    def _in_place(self, names: list) -> None:
+        """The target is (or contains) the current directory, which must not be renamed
+        away under the user's shell, or its parent is not writable: the new files are moved
+        in one by one (each replacing only fwdstep's own file, or nothing), the manifest
+        last."""
+        for n in names + [MANIFEST_FILE]:
+            os.replace(os.path.join(self.dir, n), os.path.join(self.target, n))
+        os.rmdir(self.dir)
+
+    def _swap(self, new: set) -> None:
+        """Old directory aside, new one in place, then everything of the old directory
+        that this run did not supersede (the user's files, earlier figures) moved back."""
+        aside = tempfile.mkdtemp(prefix=f".{self.name}.fwdstep-old-", dir=self.parent)
+        os.rmdir(aside)                            # a fresh unused name
+        os.rename(self.target, aside)              # target: absent for an instant ...
+        os.rename(self.dir, self.target)           # ... then complete with the new results
+        for entry in os.listdir(aside):
+            if entry not in new and entry != MANIFEST_FILE:
+                with contextlib.suppress(OSError):
+                    os.rename(os.path.join(aside, entry), os.path.join(self.target, entry))
+        shutil.rmtree(aside, ignore_errors=True)   # only superseded fwdstep files remain
+
+
+def _holds_cwd(path: str) -> bool:
+    try:
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:
+        return False
+    return cwd == path or cwd.startswith(path.rstrip(os.sep) + os.sep)
+
+
+def foreign_manifest(directory: str) -> bool:
+    """Whether ``directory`` holds a ``manifest.json`` that fwdstep did not write (another
+    tool's file, a link, a directory): fwdstep must not replace it."""
+    path = os.path.join(directory, MANIFEST_FILE)
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            return True
+        with open(path, "rb") as fh:
+            return json.loads(fh.read(1 << 20)).get("written_by") != "fwdstep"
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError, AttributeError):
+        return True
+
+
+def owned_files(directory: str) -> set:
+    """Entries of ``directory`` that fwdstep wrote: listed in its manifest (and still regular
+    files), or legacy result files when there is no manifest."""
+    try:
+        with open(os.path.join(directory, MANIFEST_FILE), "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+                raise OSError
+            listed = set(json.loads(fh.read(1 << 20)).get("files", {}))
+    except (OSError, ValueError, AttributeError):
+        listed = set(LEGACY_FILES)
+    out = set()
+    for n in listed:
+        if not isinstance(n, str) or os.path.basename(n) != n or n in ("", ".", ".."):
+            continue
+        try:
+            if stat.S_ISREG(os.lstat(os.path.join(directory, n)).st_mode):
+                out.add(n)
+        except OSError:
+            pass
+    return out
+
+
+def _not_ours(shown: str, real: str) -> str:
+    kind = ("a symbolic link" if os.path.islink(real) else
+            "a directory" if os.path.isdir(real) else "a file")
+    return (f"refusing to replace {printable(shown)}: it is {kind} that fwdstep did not write "
+            "(move it away or choose another directory with -o)")
+
+
+def _describe(path: str) -> dict:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return {"bytes": os.path.getsize(path), "sha256": h.hexdigest()}
+
+
+def _read_small(fd: int) -> str:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        return os.read(fd, 300).decode("utf-8", "replace") or "holder unknown"
+    except OSError:
+        return "holder unknown"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

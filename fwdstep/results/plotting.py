@@ -1,0 +1,379 @@
+"""Figures from a Result, as named in the diagram's ``plots:`` section, in one house style.
+
+Plotting lives here, in the runner's room, never in blocks.  Figures are
+``matplotlib.figure.Figure`` objects on an Agg canvas: pyplot is never imported and the
+caller's backend (a notebook's inline backend, say) is never switched.
+
+Signals are named as a reader of the paper names them: ``signal_info`` takes the label, unit
+and component names from the diagram's ``log:``/``plots:`` entries
+(``{signal: e.y, label: "$\\Delta q$", unit: rad, components: [joint 1, joint 2]}``), else from
+the block's declaration (a plant's ``q`` is "$q$" in rad per joint), else the signal's name.
+
+The style functions (``new_figure``, ``line_colors``, ``place_legend``, ``finish_figure``,
+``save_figure``) are shared by run, sweep and compare figures.
+"""
+from __future__ import annotations
+
+import io
+import os
+import re
+import textwrap
+from dataclasses import dataclass
+
+import numpy as np
+
+from fwdstep.core.errors import OutputError
+from fwdstep.results.result import Result, atomic_write, safe_path
+
+FORMATS = ("png", "pdf", "svg")
+WIDTH = 8.0          # inches; a figure fits a page or a slide at 100%
+PANEL_HEIGHT = 2.6
+DPI = 120
+MAX_LEGEND_ROWS = 16
+
+
+@dataclass(frozen=True)
+class SignalInfo:
+    """How figures name one signal: ``label`` (mathtext allowed), ``unit``, ``components``."""
+    name: str
+    label: str
+    unit: str = ""
+    components: tuple = ()
+
+    def axis_label(self, absolute: bool = False) -> str:
+        text = f"|{self.label}|" if absolute else self.label
+        return f"{text} [{self.unit}]" if self.unit else text
+
+    def component(self, index: tuple, shape: tuple) -> str:
+        """The name of element ``index`` of a signal of ``shape`` (1-based like the paper)."""
+        flat = int(np.ravel_multi_index(index, shape)) if shape else 0
+        if len(self.components) == int(np.prod(shape, dtype=int)) and self.components:
+            return str(self.components[flat])
+        return subscript(self.label, ",".join(str(i + 1) for i in index))
+
+
+def subscript(label: str, sub: str) -> str:
+    """``label`` with a subscript: '$\\hat\\theta$' -> '$\\hat\\theta_{1}$', 'e.y' -> 'e.y$_{1}$'."""
+    if not sub:
+        return label
+    if label.startswith("$") and label.endswith("$") and label.count("$") == 2:
+        return f"${{{label[1:-1]}}}_{{{sub}}}$"
+    return f"{label}$_{{{sub}}}$"
+
+
+def safe_label(label: str) -> str:
+    """``label`` if matplotlib can typeset it, else the same text shown literally (a typo in
+    a diagram's mathtext must not stop the figures)."""
+    if label.count("$") < 2:
+        return label
+    from matplotlib.mathtext import MathTextParser
+    try:
+        MathTextParser("path").parse(label)
+        return label
+    except ValueError:
+        return label.replace("$", r"\$")
+
+
+def signal_info(source, name: str, typeset: bool = True) -> SignalInfo:
+    """Label, unit and component names of signal ``name`` of a Result or CompiledDiagram.
+    ``typeset=False`` keeps the label as written (no mathtext check, which imports
+    matplotlib): for what is saved, checked again when a figure is drawn."""
+    diagram = getattr(source, "diagram", source)
+    meta = {"label": None, "unit": "", "components": None}
+    stored = getattr(source, "signal_labels", None) or {}
+    if diagram is not None and hasattr(diagram, "spec"):
+        real = diagram.resolve(name)
+        blk_name, _, port = real.rpartition(".")
+        for blk in diagram.blocks:
+            if blk.name == blk_name:
+                meta.update({k: v for k, v in getattr(blk, "output_info", {}).get(port, {}).items()
+                             if v})
+                break
+        info = diagram.spec.signal_info
+        for key in (real, name):
+            meta.update({k: v for k, v in info.get(key, {}).items() if v})
+    else:
+        real = (getattr(source, "aliases", None) or {}).get(name, name)
+        meta.update({k: v for k, v in stored.get(real, stored.get(name, {})).items() if v})
+    label = meta["label"] or name
+    return SignalInfo(name, safe_label(label) if typeset else label, meta["unit"] or "",
+                      tuple(meta["components"] or ()))
+
+
+class _SpecView:
+    """A loaded spec and its built blocks, seen as ``signal_info`` sees a compiled diagram."""
+
+    def __init__(self, spec, blocks):
+        self.spec, self.blocks = spec, blocks
+
+    def resolve(self, name: str) -> str:
+        return self.spec.aliases.get(name, name)
+
+
+def signal_record(spec, blocks, name: str) -> dict:
+    """What a saved sweep keeps of signal ``name`` so that figures and ``fwdstep compare``
+    name it as a run does: its name, the block port it resolves to, label, unit, components."""
+    info = signal_info(_SpecView(spec, blocks), name, typeset=False)
+    return {"name": name, "real": spec.aliases.get(name, name), "label": info.label,
+            "unit": info.unit, "components": list(info.components) or None}
+
+
+def signal_labels(result: Result) -> dict:
+    """Every recorded signal's label/unit/components, as stored with a saved result."""
+    out = {}
+    for name in result.names:
+        info = signal_info(result, name, typeset=False)
+        out[name] = {"label": info.label, "unit": info.unit,
+                     "components": list(info.components) or None}
+    return out
+
+
+# ---------------------------------------------------------------------------- style
+def new_figure(n_panels: int = 1, sharex: bool = True, height: float | None = None):
+    """A Figure (Agg canvas, constrained layout) and its column of axes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(WIDTH, height or PANEL_HEIGHT * n_panels + 0.9), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n_panels, 1, sharex=sharex, squeeze=False)[:, 0]
+    for ax in axes:
+        ax.grid(True, alpha=0.3, which="major")
+        ax.tick_params(labelsize=8)
+    return fig, list(axes)
+
+
+def line_colors(n: int) -> list:
+    """n distinct colours: the default cycle up to 10, tab20 up to 20, then viridis."""
+    from matplotlib import colormaps
+    if n <= 10:
+        return [f"C{i}" for i in range(n)]
+    if n <= 20:
+        return [colormaps["tab20"](i) for i in range(n)]
+    return [colormaps["viridis"](x) for x in np.linspace(0, 0.95, n)]
+
+
+def place_legend(ax, title: str | None = None) -> None:
+    """Every entry listed: inside the panel when few, beside it in columns when many."""
+    handles, labels = ax.get_legend_handles_labels()
+    if not handles:
+        return
+    if len(handles) <= 6:
+        ax.legend(fontsize=7, loc="best", ncol=2 if len(handles) > 3 else 1, title=title,
+                  title_fontsize=7)
+    else:
+        ncol = -(-len(handles) // MAX_LEGEND_ROWS)
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0), ncol=ncol,
+                  borderaxespad=0, title=title, title_fontsize=6)
+
+
+def time_axis(ax, t: np.ndarray) -> None:
+    """x from t0 to t_end with a small margin, so the t = 0 transient is not under the spine."""
+    if len(t) == 0:
+        return
+    span = float(t[-1] - t[0]) or 1.0
+    ax.set_xlim(float(t[0]) - 0.012 * span, float(t[-1]) + 0.012 * span)
+
+
+def headline(description: str, width: int = 100, max_lines: int = 3) -> str:
+    """The first sentence of the description's first paragraph, wrapped at words into at most
+    ``max_lines`` lines (a longer sentence ends at its last clause that fits, then '…')."""
+    lines = []
+    for ln in (description or "").strip("\n").splitlines():
+        if not ln.strip() or (lines and len(ln) - len(ln.lstrip()) > 0):
+            break                     # a blank line or an indented (displayed) line ends it
+        lines.append(ln.strip())
+    text = " ".join(lines)
+    text = re.split(r"(?<=[.!?])\s+(?=[A-Z])", text, maxsplit=1)[0]
+    text = text.rstrip(",;:")         # it introduced the displayed lines that were cut
+    wrapped = textwrap.wrap(text, width)
+    if len(wrapped) > max_lines:
+        clauses = re.split(r"(?<=[,;:])\s+", text)
+        keep = clauses[0]
+        for clause in clauses[1:]:
+            if len(textwrap.wrap(f"{keep} {clause} …", width)) > max_lines:
+                break
+            keep = f"{keep} {clause}"
+        wrapped = textwrap.wrap(keep.rstrip(",;:") + " …", width)
+    return "\n".join(wrapped)
+
+
+def finish_figure(fig, title: str, subtitle: str = "") -> None:
+    fig.suptitle(title + (f"\n{subtitle}" if subtitle else ""), fontsize=9.5, ha="center")
+
+
+def figure_bytes(fig, fmt: str = "png") -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format=fmt, dpi=DPI, metadata={"Software": "fwdstep"} if fmt == "png"
+                else None)
+    return buf.getvalue()
+
+
+def save_figure(fig, outdir: str, name: str, formats=("png",)) -> list:
+    """Write ``name.<fmt>`` for each format into ``outdir`` (created if missing); the paths.
+
+    Commands pass the staging directory of a ``fwdstep.results.outputs.OutputDir`` (``out.dir``) as
+    ``outdir`` and commit it afterwards: that is what keeps figures from replacing files
+    fwdstep did not write, or being written through symbolic links, in the user's directory.
+    """
+    formats = check_formats(formats)
+    try:
+        os.makedirs(outdir, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"cannot create the output directory {outdir}: "
+                          f"{exc.strerror or exc}") from exc
+    paths = []
+    for fmt in formats:
+        data = figure_bytes(fig, fmt)
+        path = safe_path(outdir, f"{name}.{fmt}")
+        atomic_write(path, lambda fh, data=data: fh.write(data), binary=True)
+        paths.append(path)
+    return paths
+
+
+def check_formats(formats) -> tuple:
+    formats = tuple(formats or ("png",))
+    for fmt in formats:
+        if fmt not in FORMATS:
+            raise OutputError(f"figure format '{fmt}' is not supported; formats are: "
+                              f"{', '.join(FORMATS)}")
+    return formats
+
+
+def pretty(name: str) -> str:
+    """'tracking_error' -> 'Tracking error'."""
+    text = name.replace("_", " ").replace("-", " ").strip()
+    return text[:1].upper() + text[1:]
+
+
+# ---------------------------------------------------------------------------- run figures
+def figure_specs(result: Result) -> dict:
+    """figure name -> list of (signals, scale) panels."""
+    if result.diagram is None:                       # a loaded result: as saved
+        return dict(getattr(result, "figure_panels", {}) or {})
+    spec = result.diagram.spec
+    if spec.plots:
+        return {name: list(zip(panels, spec.plot_scales.get(name, ["linear"] * len(panels))))
+                for name, panels in spec.plots.items()}
+    if "error" in spec.metrics:
+        err = spec.metrics["error"]
+        return {"tracking_error": [([err], "linear"), ([err], "log")]}
+    return {}
+
+
+def result_figures(result: Result, variants: list | None = None, names=None) -> dict:
+    """figure name -> Figure, for the figures the diagram names (or ``names`` of them)."""
+    figs = figure_specs(result)
+    if names is not None:
+        unknown = [n for n in names if n not in figs]
+        if unknown:
+            raise KeyError(f"no figure '{unknown[0]}'; figures are: {', '.join(figs) or '(none)'}")
+        figs = {n: figs[n] for n in names}
+    if len(result.t) == 0:
+        return {}
+    subtitle = (headline(result.diagram.spec.description) if result.diagram is not None
+                else getattr(result, "title", ""))
+    return {name: panel_figure(result, panels, pretty(name), subtitle, variants)
+            for name, panels in figs.items()}
+
+
+def panel_figure(result: Result, panels: list, title: str = "", subtitle: str = "",
+                 variants: list | None = None):
+    """One Figure, one panel per (signals, scale)."""
+    fig, axes = new_figure(len(panels))
+    for ax, (panel, scale) in zip(axes, panels):
+        infos = [signal_info(result, s) for s in panel]
+        log = scale == "log"
+        draw_panel(ax, result, infos, variants, log=log)
+        if log:
+            ax.set_yscale("log")
+        absolute = log or result.batch > 1          # what is drawn: |component| or |signal|
+        units = {i.unit for i in infos}
+        if len(infos) == 1:
+            ylabel = infos[0].axis_label(absolute)
+        else:
+            names = ", ".join(f"|{i.label}|" if absolute else i.label for i in infos)
+            ylabel = names + (f" [{units.pop()}]" if len(units) == 1 and "" not in units else "")
+        ax.set_ylabel(ylabel if len(ylabel) <= 45 else textwrap.fill(ylabel, 30), fontsize=9)
+        time_axis(ax, result.t)
+        place_legend(ax)
+    axes[-1].set_xlabel("$t$ [s]", fontsize=9)
+    finish_figure(fig, title, subtitle)
+    return fig
+
+
+_STYLES = ("-", "--", ":", "-.")
+
+
+def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False) -> int:
+    """Draw every component of every signal (|component| on a log panel); for a batch, |signal|
+    of every chosen variant.  Component i has one colour whatever the signal, each signal its
+    own line style, so an estimate and its true value share a colour.  Returns lines drawn."""
+    t = result.t
+    drawn = 0
+    if result.batch == 1:
+        widest = max(int(np.prod(result[i.name].shape[1:], dtype=int)) for i in infos)
+        colors = line_colors(widest)
+        for k, info in enumerate(infos):
+            data = result[info.name]
+            shape = data.shape[1:]
+            flat = data.reshape(len(t), -1)
+            for j in range(flat.shape[1]):
+                name = info.label if not shape else info.component(
+                    np.unravel_index(j, shape), shape)
+                if len(infos) > 1 and shape and info.components:
+                    name = f"{info.label}: {name}"
+                y = np.abs(flat[:, j]) if log else flat[:, j]
+                ax.plot(t, y, lw=1.1, ls=_STYLES[k % 4], color=colors[j],
+                        label=f"|{name}|" if log and not info.components else name)
+                drawn += 1
+        return drawn
+    chosen = list(variants) if variants is not None else list(range(result.batch))
+    colors = line_colors(len(chosen))
+    names = variant_names(result)
+    for k, info in enumerate(infos):
+        data = result[info.name]
+        for c, b in enumerate(chosen):
+            flat = data[:, b].reshape(len(t), -1)
+            norm = np.sqrt(np.sum(flat ** 2, axis=1))
+            ax.plot(t, norm, lw=1.0, ls=_STYLES[k % 4], color=colors[c],
+                    label=(f"{info.label}: " if len(infos) > 1 else "") + names[b])
+            drawn += 1
+    return drawn
+
+
+def variant_names(result: Result) -> list:
+    """'alpha = 3, K = 20' per variant of a batch: the parameters that differ between them."""
+    params = getattr(result.diagram, "variant_parameters", None) or []
+    if len(params) != result.batch:
+        return [f"variant {b}" for b in range(result.batch)]
+    keys = [k for k in params[0]
+            if any(_differ(p.get(k), params[0].get(k)) for p in params[1:])]
+    if not keys:
+        return [f"variant {b}" for b in range(result.batch)]
+    return [", ".join(f"{k} = {_short(p.get(k))}" for k in keys[:3]) for p in params]
+
+
+def _differ(a, b) -> bool:
+    try:
+        return not np.array_equal(np.asarray(a), np.asarray(b))
+    except (TypeError, ValueError):
+        return a != b
+
+
+def _short(value) -> str:
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        return f"{float(arr):g}" if np.issubdtype(arr.dtype, np.number) else str(value)
+    text = np.array2string(arr, precision=3, separator=", ")
+    return text if len(text) <= 30 else text[:28] + "…"
+
+
+def plot_result(result: Result, outdir: str, variants: list | None = None,
+                formats=("png",)) -> list:
+    """Write each figure of the diagram into ``outdir`` (created if missing) as
+    ``name.png`` (and/or .pdf, .svg); returns the paths written."""
+    formats = check_formats(formats)
+    paths = []
+    for name, fig in result_figures(result, variants).items():
+        paths += save_figure(fig, outdir, name, formats)
+    return paths

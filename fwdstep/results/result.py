@@ -1,0 +1,368 @@
+"""Simulation results: recorded signals, summary metrics, and safe writing to disk."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+
+import numpy as np
+
+from fwdstep.core.errors import OutputError, printable
+
+RESULT_FILE = "result.npz"
+SUMMARY_FILE = "summary.json"
+
+
+class Result:
+    """Time plus named signals of fixed shape.
+
+    ``result.t`` is (T,); ``result["block.port"]`` is (T, *shape) for a single run and
+    (T, B, *shape) for a batch of B variants.  Subsystem port names ('plant.q') work too.
+    """
+
+    def __init__(self, t, signals: dict, diagram=None, status: str = "ok", message: str = "",
+                 wall_time: float = 0.0, steps: int = 0, diverged_at=None, reasons=None):
+        self.t = t
+        self._signals = signals
+        self.diagram = diagram
+        self.status = status
+        self.message = message
+        self.wall_time = wall_time
+        self.steps = steps
+        self.batch = diagram.batch if diagram is not None else 1
+        self.diverged_at = diverged_at
+        self.reasons = dict(reasons or {})    # batch: variant -> why it diverged (one line)
+
+    @property
+    def names(self) -> list:
+        return list(self._signals)
+
+    def _key(self, name: str) -> str:
+        if name in self._signals:
+            return name
+        real = (self.diagram.resolve(name) if self.diagram is not None
+                else getattr(self, "aliases", {}).get(name, name))     # loaded: stored aliases
+        if real in self._signals:
+            return real
+        raise KeyError(f"signal '{name}' was not recorded; recorded signals are: "
+                       f"{', '.join(self._signals)}")
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        arr = self._signals[self._key(name)]
+        return arr[:, 0] if self.batch == 1 else arr
+
+    def __contains__(self, name: str) -> bool:
+        try:
+            self._key(name)
+            return True
+        except KeyError:
+            return False
+
+    def variant(self, b: int) -> dict:
+        return {k: v[:, b] for k, v in self._signals.items()}
+
+    # ------------------------------------------------------------------ metrics
+    def metrics(self) -> dict | list:
+        """Summary metrics of the signal named by ``metrics: error:`` (per variant for a batch).
+
+        |e|(t) is the Euclidean norm over the signal's components. Reported: final |e|,
+        max |e| over the last ``tail`` fraction of the run (default 20%), RMS of |e| over
+        the run, and max |e| over the run.
+        """
+        if self.diagram is None and getattr(self, "stored", None):    # from load_result
+            return self.stored.get("metrics") or {}
+        if self.diagram is None or "error" not in self.diagram.spec.metrics:
+            return {} if self.batch == 1 else [{} for _ in range(self.batch)]
+        e = self._signals[self._key(self.diagram.spec.metrics["error"])]
+        tail = self.diagram.spec.metrics.get("tail", 0.2)
+        out = batch_error_metrics(self.t, e, tail)
+        return out[0] if self.batch == 1 else out
+
+    # ------------------------------------------------------------------ writing
+    def summary(self) -> dict:
+        d = self.diagram
+        cfg = d.spec.simulation if d is not None else None
+        params = [_jsonable(p) for p in d.variant_parameters] if d is not None else []
+        return {
+            "status": self.status,
+            "message": self.message,
+            "diagram": d.file if d is not None else None,
+            "parameters": params[0] if len(params) == 1 else params,
+            "simulation": {"t_final": cfg.t_final, "step": cfg.step, "solver": cfg.solver,
+                           "log_every": cfg.log_every, "bound": cfg.bound} if cfg else None,
+            "t_reached": float(self.t[-1]) if len(self.t) else None,
+            "steps": int(self.steps),
+            "batch": self.batch,
+            "wall_time_s": round(self.wall_time, 6),
+            "metrics": _jsonable(self.metrics()),
+            "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
+            **_figure_summary(self),
+        }
+
+    def save(self, outdir: str, force: bool = True) -> list:
+        """Write ``result.npz``, ``summary.json`` and ``manifest.json`` into ``outdir`` as one
+        transaction (``fwdstep.results.outputs.OutputDir``: locked, staged, one rename); replaces
+        results fwdstep wrote there before (``force=False`` refuses to), never another file
+        or a symbolic link.  Returns the paths written."""
+        from fwdstep.results.outputs import OutputDir
+        with OutputDir(outdir, force=force, expected=[RESULT_FILE, SUMMARY_FILE]) as out:
+            self.write_files(out.dir)
+            return out.commit()
+
+    def write_files(self, outdir: str) -> list:
+        """Write ``result.npz`` and ``summary.json`` atomically into the directory ``outdir``
+        (the staging directory of an ``OutputDir``; ``save`` is the transaction)."""
+        os.makedirs(outdir, exist_ok=True)
+        arrays = {"t": self.t}
+        for k, v in self._signals.items():
+            arrays[k] = v[:, 0] if self.batch == 1 else v
+        paths = [safe_path(outdir, RESULT_FILE), safe_path(outdir, SUMMARY_FILE)]
+        summary = json.dumps(self.summary(), indent=2)
+        # both files are complete on disk before either replaces an old one
+        with atomic_write(paths[0], lambda fh: np.savez(fh, **arrays), binary=True,
+                          commit=False) as commit_result:
+            atomic_write(paths[1], lambda fh: fh.write(summary))
+            commit_result()
+        return paths
+
+
+    # ------------------------------------------------------------------ notebooks
+    def plot(self, signals=None, figure: str | None = None, scale: str = "linear",
+             variants: list | None = None):
+        """matplotlib Figures, made without pyplot and without touching the backend.
+
+        ``r.plot()``: dict figure name -> Figure for the diagram's ``plots:``;
+        ``r.plot(figure="torque")``: that Figure; ``r.plot("e.y")`` or
+        ``r.plot(["adapt.theta_hat", "truth.y"], scale="log")``: one panel of those signals."""
+        from fwdstep.results.plotting import panel_figure, result_figures
+        if signals is not None:
+            sigs = [signals] if isinstance(signals, str) else list(signals)
+            for s in sigs:
+                self._key(s)
+            from fwdstep.results.plotting import signal_info
+            title = ", ".join(signal_info(self, s).label for s in sigs)
+            return panel_figure(self, [(sigs, scale)], title, variants=variants)
+        if figure is not None:
+            return result_figures(self, variants, [figure])[figure]
+        return result_figures(self, variants)
+
+    def _repr_html_(self) -> str:
+        from fwdstep.views.report import result_summary_html
+        return result_summary_html(self)
+
+    # ------------------------------------------------------------------ labelled data
+    def to_xarray(self):
+        """The signals as an xarray Dataset: dims time, [variant,] and each signal's own
+        component axes; attrs: status, diagram, settings (``fwdstep.results.labelled``)."""
+        from fwdstep.results.labelled import result_dataset
+        return result_dataset(self)
+
+    def to_pandas(self):
+        """The signals as a pandas DataFrame indexed by time, one column per component."""
+        from fwdstep.results.labelled import result_frame
+        return result_frame(self)
+
+
+def load_result(outdir: str) -> Result:
+    """A Result saved by ``fwdstep run`` (``result.npz`` + ``summary.json`` in ``outdir``).
+
+    The loaded Result has no compiled diagram (``diagram`` is None): signals, status, metrics,
+    labels and figures come from the files, so it plots and compares like a fresh one."""
+    from fwdstep.core.errors import OutputError
+    npz, summ = os.path.join(outdir, RESULT_FILE), os.path.join(outdir, SUMMARY_FILE)
+    for path in (npz, summ):
+        if not os.path.isfile(path):
+            raise OutputError(f"{outdir} holds no saved run: {os.path.basename(path)} is missing "
+                              "(write one with fwdstep run DIAGRAM -o DIR)")
+    try:
+        with open(summ, encoding="utf-8") as fh:
+            summary = json.load(fh)
+        with np.load(npz, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, KeyError) as exc:
+        raise OutputError(f"cannot read the saved run in {outdir}: {exc}") from exc
+    batch = int(summary.get("batch") or 1)
+    t = arrays.pop("t")
+    signals = {k: (v[:, None] if batch == 1 else v) for k, v in arrays.items()}
+    r = Result(t, signals, status=summary.get("status", "ok"),
+               message=summary.get("message", ""), wall_time=summary.get("wall_time_s", 0.0),
+               steps=summary.get("steps", 0))
+    r.batch = batch
+    r.stored = summary
+    r.outdir = outdir
+    r.signal_labels = summary.get("signal_labels") or {}
+    r.figure_panels = {name: [(list(p["signals"]), p.get("scale", "linear")) for p in panels]
+                       for name, panels in (summary.get("figures") or {}).items()}
+    r.title = summary.get("title", "")
+    r.aliases = summary.get("aliases") or {}
+    return r
+
+
+def _figure_summary(result: Result) -> dict:
+    """Labels, figures and headline of a run, so a loaded result plots like a fresh one."""
+    if result.diagram is None:
+        return {}
+    from fwdstep.results.plotting import figure_specs, headline, signal_labels
+    return {"title": headline(result.diagram.spec.description),
+            "figures": {name: [{"signals": list(sigs), "scale": scale} for sigs, scale in panels]
+                        for name, panels in figure_specs(result).items()},
+            "signal_labels": signal_labels(result),
+            "aliases": {k: v for k, v in result.diagram.spec.aliases.items()
+                        if v in result.names}}
+
+
+#: The error metrics in summary.json (docs/diagram-format.md, "Metrics").  e(t) is the signal
+#: named by ``metrics: error:``, flattened per time; |e|_2 its Euclidean norm over components,
+#: max_i |e_i| its largest component; "tail" is the last ``metrics: tail`` fraction (20 %) of
+#: the logged time span.
+METRIC_DEFINITIONS = {
+    "final_error_norm": "|e(T)|_2 at the last logged time T",
+    "final_error_max_abs": "max_i |e_i(T)|: the largest component (joint) error at T",
+    "tail_error_norm_max": "max over the tail of |e(t)|_2",
+    "tail_error_max_abs": "max over the tail and the components of |e_i(t)| (largest joint)",
+    "tail_error_max_abs_by_component": "per component i: max over the tail of |e_i(t)|",
+    "rms_error_norm": "sqrt(mean over logged t of |e(t)|_2^2)",
+    "error_norm_max": "max over all logged t of |e(t)|_2",
+    # the names before issue 15, kept for old scripts: all four are Euclidean norms
+    "final_abs_error": "= final_error_norm (old name)",
+    "tail_max_abs_error": "= tail_error_norm_max (old name)",
+    "rms_error": "= rms_error_norm (old name)",
+    "max_abs_error": "= error_norm_max (old name)",
+}
+
+
+def error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> dict:
+    """The metrics of METRIC_DEFINITIONS for the error signal ``e`` (time first)."""
+    return batch_error_metrics(t, e[:, None], tail)[0]
+
+
+def batch_error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> list:
+    """``error_metrics`` of every variant of ``e`` (time, variant, ...), computed together (a
+    sweep's batch: a few NumPy calls instead of a few per variant).  Each variant's numbers
+    are those of its own call: the sum over time runs over one variant's contiguous row, as
+    it does for a variant alone (sums over a component and maxima do not depend on the
+    layout)."""
+    B = e.shape[1]
+    if len(t) == 0:
+        return [{k: None for k in METRIC_DEFINITIONS} for _ in range(B)]
+    flat = e.reshape(len(t), B, -1)                                        # (T, B, n)
+    with np.errstate(all="ignore"):      # a diverged run has huge, inf or NaN errors
+        norm = _scaled_norm(flat, axis=2)                                   # (T, B)
+        rms = _scaled_norm(np.ascontiguousarray(norm.T), axis=1) / np.sqrt(len(t))
+        absolute = np.abs(flat)
+    t_end = t[-1]
+    mask = t >= t[0] + (1 - tail) * (t_end - t[0])
+    by_component = np.max(absolute[mask], axis=0)                            # (B, n)
+    columns = {
+        "final_error_norm": norm[-1],
+        "final_error_max_abs": np.max(absolute[-1], axis=1),
+        "tail_error_norm_max": np.max(norm[mask], axis=0),
+        "tail_error_max_abs": np.max(by_component, axis=1),
+        "rms_error_norm": rms,
+        "error_norm_max": np.max(norm, axis=0),
+    }
+    columns = {k: v.tolist() for k, v in columns.items()}     # Python floats, same numbers
+    components = by_component.tolist()
+    out = []
+    for b in range(B):
+        m = {k: columns[k][b] for k in ("final_error_norm", "final_error_max_abs",
+                                        "tail_error_norm_max", "tail_error_max_abs")}
+        m["tail_error_max_abs_by_component"] = components[b]
+        m["rms_error_norm"] = columns["rms_error_norm"][b]
+        m["error_norm_max"] = columns["error_norm_max"][b]
+        m.update(final_abs_error=m["final_error_norm"], tail_max_abs_error=m[
+            "tail_error_norm_max"], rms_error=m["rms_error_norm"],
+            max_abs_error=m["error_norm_max"])
+        out.append(m)
+    return out
+
+
+def _scaled_norm(a: np.ndarray, axis: int):
+    """Euclidean norm that does not overflow for entries near the float limit."""
+    scale = np.max(np.abs(a), axis=axis, keepdims=True)
+    safe = np.where((scale > 0) & np.isfinite(scale), scale, 1.0)
+    norm = np.sqrt(np.sum((a / safe) ** 2, axis=axis, keepdims=True)) * safe
+    norm = np.where(np.isfinite(scale), norm, scale)     # inf and NaN pass through
+    return np.squeeze(norm, axis=axis)
+
+
+def safe_path(outdir: str, name: str) -> str:
+    """``outdir/name``, refusing any name that would leave ``outdir``."""
+    if os.path.basename(name) != name or name in ("", ".", "..") or "\x00" in name:
+        raise OutputError(f"refusing to write '{name}': not a plain file name inside {outdir}")
+    if not name.isprintable():
+        raise OutputError(f"refusing to write '{printable(name)}': control characters in a file "
+                          "name")
+    base = os.path.realpath(outdir)
+    path = os.path.join(base, name)
+    if os.path.islink(path):           # never written through: atomic_write would follow it
+        raise OutputError(f"refusing to write '{name}': it is a symbolic link in {outdir}")
+    return path
+
+
+def atomic_write(path: str, write, binary: bool = False, commit: bool = True):
+    """Write to a temporary file in the same directory, then rename it over ``path``.
+
+    ``path`` is always either the old file or the complete new one, never a truncated file,
+    and no temporary file is left behind.  With ``commit=False`` the rename is deferred:
+    the return value is a context manager yielding a function that performs it (the
+    temporary file is removed if the block is left without calling it)."""
+    directory = os.path.dirname(path)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
+    try:
+        os.fchmod(fd, 0o666 & ~_umask())          # as open() would create it, not 0600
+        with os.fdopen(fd, "wb" if binary else "w") as fh:
+            write(fh)
+        if commit:
+            os.replace(tmp, path)
+            return None
+    except BaseException:
+        _unlink(tmp)
+        raise
+    return _Deferred(tmp, path)
+
+
+class _Deferred:
+    def __init__(self, tmp: str, path: str):
+        self.tmp, self.path, self.done = tmp, path, False
+
+    def __enter__(self):
+        return self.commit
+
+    def commit(self) -> None:
+        os.replace(self.tmp, self.path)
+        self.done = True
+
+    def __exit__(self, *exc) -> bool:
+        if not self.done:
+            _unlink(self.tmp)
+        return False
+
+
+def _unlink(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    return obj

@@ -1,0 +1,80 @@
+"""Explicit fixed-step Runge-Kutta methods as Butcher-tableau data.
+
+One generic stepper (in ``fwdstep.simulate``) runs any of them.  Each method documents its
+order; ``tests/fwdstep/test_solvers.py`` fits the slope of log(error) against log(step) to
+prove it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Tableau:
+    name: str
+    order: int
+    a: tuple      # lower-triangular stage coefficients a[i][j], j < i
+    b: tuple
+    c: tuple
+
+    @property
+    def stages(self) -> int:
+        return len(self.b)
+
+    def check(self) -> None:
+        """Consistency: c_i = sum_j a_ij and sum b = 1."""
+        for i, row in enumerate(self.a):
+            assert abs(sum(row) - self.c[i]) < 1e-15
+        assert abs(sum(self.b) - 1.0) < 1e-15
+
+
+TABLEAUX = {
+    # forward Euler, order 1
+    "euler": Tableau("euler", 1, a=((),), b=(1.0,), c=(0.0,)),
+    # Heun's method (explicit trapezoid), order 2
+    "heun": Tableau("heun", 2, a=((), (1.0,)), b=(0.5, 0.5), c=(0.0, 1.0)),
+    # the classical Runge-Kutta method, order 4
+    "rk4": Tableau("rk4", 4, a=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),
+                   b=(1 / 6, 1 / 3, 1 / 3, 1 / 6), c=(0.0, 0.5, 0.5, 1.0)),
+}
+
+
+#: adaptive methods of scipy.integrate.solve_ivp (``fwdstep.run.ivp``): name -> scipy's name.
+#: dop853: explicit Runge-Kutta of order 8 (Dormand-Prince), for checking a fixed-step run
+#: against a tight tolerance; radau: implicit Runge-Kutta (Radau IIA) of order 5, for stiff
+#: diagrams; lsoda: switches between Adams and BDF (ODEPACK) as stiffness comes and goes.
+IVP_METHODS = {"dop853": "DOP853", "radau": "Radau", "lsoda": "LSODA"}
+
+
+def step_plan(tableau: Tableau, h: float):
+    """Precomputed, zero-free coefficient lists for one step of size h:
+    ``stages[i] = (c_i*h, [(j, h*a_ij), ...])`` for i >= 1, and ``[(j, h*b_j), ...]``."""
+    stages = []
+    for i in range(1, tableau.stages):
+        stages.append((tableau.c[i] * h,
+                       [(j, h * a) for j, a in enumerate(tableau.a[i]) if a != 0.0]))
+    final = [(j, h * b) for j, b in enumerate(tableau.b) if b != 0.0]
+    return stages, final
+
+
+def integrate_ode(f, x0, t_final: float, h: float, method: str = "rk4") -> np.ndarray:
+    """Integrate ``x' = f(t, x)`` with a fixed step; the same stepper logic as simulate(),
+    for tests and for users who need a plain ODE."""
+    tab = TABLEAUX[method]
+    stages, final = step_plan(tab, h)
+    x = np.array(x0, dtype=float)
+    n = int(round(t_final / h))
+    k = [None] * tab.stages
+    for i in range(n):
+        t = i * h
+        k[0] = f(t, x)
+        for s, (ch, coeffs) in enumerate(stages, start=1):
+            xi = x.copy()
+            for j, a in coeffs:
+                xi += a * k[j]
+            k[s] = f(t + ch, xi)
+        for j, b in final:
+            x = x + b * k[j]
+    return x

@@ -1,0 +1,965 @@
+"""Diagram files -> a flat, evaluated ``DiagramSpec`` (structure only, no numerics).
+
+A diagram file has these top-level keys::
+
+    description:  free text
+    parameters:   name: value            # numbers, lists, or expressions over other parameters
+    blocks:       name: {type: T, ...}   # parameters of the block; or type: subsystem
+    connections:  - "src.out -> dst.in, other.in"
+    ports:        {inputs: {name: blk.in | [blk.in, ...]}, outputs: {name: blk.out}}  # subsystems
+    simulation:   {t_final, step, solver, log_every, bound}
+    log:          [blk.port, ...]
+    plots:        {figure_name: [panel, ...]}   # panel: "blk.port" or [blk.port, ...]
+    metrics:      {error: blk.port}
+
+Subsystems (``type: subsystem``, ``file:``, ``parameters:``) are flattened here, recursively:
+their blocks are renamed ``<subsystem>/<block>`` and their declared ports are wired through.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from fwdstep.core.errors import (ConfigError, DiagramError, ExpressionError, ParameterError, WiringError,
+                     YamlError)
+from fwdstep.core.expressions import MAX_ARRAY_SIZE, evaluate, names_in
+from fwdstep.core.registry import lookup
+from fwdstep.core.search import SearchPath, check_regular_file
+from fwdstep.core.yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
+
+TOP_LEVEL_KEYS = ("description", "parameters", "blocks", "connections", "ports", "simulation",
+                  "log", "plots", "metrics")
+SIMULATION_KEYS = ("t_final", "step", "solver", "log_every", "bound", "backend", "rtol", "atol")
+SUBSYSTEM_KEYS = ("type", "file", "parameters", "sample_period", "sample_offset")
+SOLVER_NAMES = ("euler", "heun", "rk4", "dop853", "radau", "lsoda")   # fwdstep.run.solvers
+MAX_STEPS = 50_000_000
+MAX_SUBSYSTEM_DEPTH = 16
+MAX_BLOCKS = 10_000                     # blocks after subsystem expansion
+MAX_PARAMETER_NUMBERS = 20_000_000      # numbers held by all evaluated parameters (160 MiB)
+MAX_PARAMETER_SECONDS = 30              # time spent evaluating parameters
+_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+$")   # plant.arm.q0
+_FIGURE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]{0,63}$")
+
+
+@dataclass
+class BlockEntry:
+    name: str
+    type_name: str
+    cls: type
+    params: dict
+    file: str
+    line: int | None
+    key_lines: dict = field(default_factory=dict)
+
+
+@dataclass
+class Connection:
+    src: tuple
+    dst: tuple
+    file: str
+    line: int | None
+    text: str
+
+
+@dataclass
+class SimulationConfig:
+    t_final: float = 10.0
+    step: float = 1e-3
+    solver: str = "rk4"
+    log_every: int = 1
+    bound: float = 1e8
+    backend: str = "numpy"
+    rtol: float = 1e-8           # dop853 / radau / lsoda only (fwdstep.run.ivp)
+    atol: float = 1e-10
+    defaulted: tuple = ()       # t_final/step the diagram did not give (the run's header says)
+    given: bool = True          # the diagram has a simulation: section
+
+    @property
+    def n_steps(self) -> int:
+        return int(round(self.t_final / self.step))
+
+
+@dataclass
+class DiagramSpec:
+    file: str
+    description: str
+    parameters: dict
+    blocks: list
+    connections: list
+    simulation: SimulationConfig
+    log: list | None
+    plots: dict
+    metrics: dict
+    aliases: dict
+    lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
+    plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
+    input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
+    signal_info: dict = field(default_factory=dict)   # signal -> {label, unit, components}
+
+
+# ---------------------------------------------------------------------------- helpers
+class Budget:
+    """Limits on what loading one diagram may cost, checked as it goes (before building more):
+    blocks after subsystem expansion, numbers held by evaluated parameters, and the time spent
+    evaluating them.  Errors raised here are marked ``fatal``: validation stops at once."""
+
+    def __init__(self):
+        self.blocks = 0
+        self.numbers = 0
+        self.start = time.monotonic()
+
+    def _fail(self, exc: DiagramError) -> DiagramError:
+        exc.fatal = True
+        return exc
+
+    def add_block(self, name: str, file: str, line) -> None:
+        self.blocks += 1
+        if self.blocks > MAX_BLOCKS:
+            raise self._fail(ConfigError(
+                f"the diagram has more than {MAX_BLOCKS} blocks after subsystem expansion "
+                f"(reached at '{name}'); refused before building more", file=file, line=line,
+                block=name))
+
+    def charge(self, value, what: str) -> None:
+        if isinstance(value, (np.ndarray, float, int)):
+            self.numbers += int(np.size(value))
+        if self.numbers > MAX_PARAMETER_NUMBERS:
+            raise self._fail(ExpressionError(
+                f"{what}: the diagram's evaluated parameters would hold {self.numbers} numbers; "
+                f"the limit is {MAX_PARAMETER_NUMBERS} ({MAX_PARAMETER_NUMBERS * 8 >> 20} MiB)"))
+        spent = time.monotonic() - self.start
+        if spent > MAX_PARAMETER_SECONDS:
+            raise self._fail(ExpressionError(
+                f"{what}: evaluating the diagram's parameters has taken {spent:.0f} s; the limit "
+                f"is {MAX_PARAMETER_SECONDS} s"))
+
+
+def kind_of(value) -> str:
+    """What a YAML value is, in the words of the diagram format ('a list', 'a number')."""
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "a mapping"
+    return f"a {type(value).__name__}"
+
+
+def _mapping(value, what: str, file: str, line: int | None) -> LineDict:
+    if value is None:
+        out = LineDict()
+        out.line, out.key_lines = line, {}
+        return out
+    if not isinstance(value, dict):
+        raise ConfigError(f"'{what}' must be a mapping, got {kind_of(value)}", file=file,
+                          line=line)
+    return value
+
+
+def _line(container, key) -> int | None:
+    if isinstance(container, (LineDict, LineList)):
+        return container.line_of(key)
+    return None
+
+
+def evaluate_value(value: Any, namespace: dict, what: str):
+    """Evaluate a YAML value: strings are expressions, lists are evaluated element-wise."""
+    if isinstance(value, str):
+        return evaluate(value, namespace, what)
+    if isinstance(value, list):
+        items, total = [], 0
+        for v in value:
+            items.append(evaluate_value(v, namespace, what))
+            total += int(np.size(items[-1])) if items[-1] is not None else 1
+            if total > MAX_ARRAY_SIZE:
+                raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
+        for v in items:
+            if v is None or isinstance(v, (bool, np.bool_)):
+                shown = "null (an empty entry)" if v is None else str(v).lower()
+                raise ExpressionError(f"{what}: a list may contain only numbers, not {shown}")
+        try:
+            return np.array(items, dtype=float)
+        except (ValueError, TypeError):
+            raise ExpressionError(f"{what}: the list is not a rectangular array of numbers"
+                                  ) from None
+    if isinstance(value, dict):
+        raise ExpressionError(f"{what} must be a number, a list or an expression, not a "
+                              "mapping ({...} or indented 'key: value' lines)")
+    if isinstance(value, bool) or value is None:
+        return value
+    if isinstance(value, (int, float)):
+        try:
+            number = float(value)
+        except OverflowError:
+            raise ExpressionError(f"{what}: the integer is too large to be a number") from None
+        if not math.isfinite(number):
+            raise ExpressionError(f"{what}: value {value} is not finite")
+        return number
+    return value
+
+
+def evaluate_ragged(value: Any, namespace: dict, what: str):
+    """A list of rows of different lengths -> a matrix padded with zeros at the end of each
+    row (``[[1, 0.5], [2]]`` -> ``[[1, 0.5], [2, 0]]``); anything else as ``evaluate_value``."""
+    if not (isinstance(value, list) and value and all(isinstance(v, list) for v in value)):
+        return evaluate_value(value, namespace, what)
+    rows = [np.atleast_1d(evaluate_value(v, namespace, what)) for v in value]
+    if any(r.ndim != 1 for r in rows):
+        raise ExpressionError(f"{what}: each row must be a list of numbers")
+    width = max(r.size for r in rows)
+    if width * len(rows) > MAX_ARRAY_SIZE:
+        raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
+    out = np.zeros((len(rows), width))
+    for i, r in enumerate(rows):
+        out[i, :r.size] = r
+    return out
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``NAME=VALUE`` from the command line; VALUE is read as a YAML scalar/flow value."""
+    if "=" not in text:
+        raise ConfigError(f"--set '{text}' must have the form NAME=VALUE")
+    name, raw = text.split("=", 1)
+    name = name.strip()
+    if not _NAME.match(name) and not _PATH.match(name):
+        raise ConfigError(f"--set '{text}': '{name}' is not a parameter name, "
+                          "simulation.SETTING, log, BLOCK.PARAMETER or SUBSYSTEM.BLOCK.PARAMETER")
+    try:
+        value = parse_yaml_text(raw) if raw.strip() else None
+    except YamlError:
+        value = raw
+    if value is None:
+        raise ConfigError(f"--set '{text}' has no value")
+    return name, value
+
+
+def resolve_parameters(raw: LineDict, overrides: dict, file: str,
+                       preset: dict | None = None, line: int | None = None,
+                       budget: "Budget | None" = None) -> dict:
+    """Evaluate the ``parameters:`` section (any order; references resolved by dependency).
+
+    ``overrides`` replace raw values (``--set``); ``preset`` supplies already-evaluated values
+    (parameters passed into a subsystem by its parent)."""
+    raw = _mapping(raw, "parameters", file, None)
+    for key in raw:
+        if not isinstance(key, str) or not _NAME.match(key):
+            raise ParameterError(f"parameter name '{key}' is not a valid name (letters, digits, _)",
+                                 file=file, line=_line(raw, key))
+    values = dict(raw)
+    for name, value in (overrides or {}).items():
+        if name not in values:
+            import difflib
+            known = ", ".join(values) or "(none)"
+            close = difflib.get_close_matches(name, list(values), n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise ConfigError(f"--set {name}=...: the diagram has no parameter '{name}'; "
+                              f"{hint}parameters are: {known}", file=file,
+                              line=line or getattr(raw, "line", None))
+        values[name] = value
+    namespace: dict = dict(preset or {})
+    pending = {k: v for k, v in values.items() if k not in namespace}
+    # dependency order in linear time: each expression is parsed once, then Kahn's algorithm
+    needs: dict = {}
+    users: dict = {name: [] for name in pending}
+    for name, value in pending.items():
+        deps = set()
+        for text in _strings_in(value):
+            deps |= names_in(text)
+        needs[name] = {d for d in deps if d in pending and d != name}
+        for d in needs[name]:
+            users[d].append(name)
+    ready = [name for name in pending if not needs[name]]
+    done = 0
+    while done < len(ready):
+        name = ready[done]
+        try:
+            namespace[name] = evaluate_value(pending[name], namespace, f"parameter '{name}'")
+            if budget is not None:
+                budget.charge(namespace[name], f"parameter '{name}'")
+        except DiagramError as exc:
+            raise exc.located(file, _line(raw, name)) from None
+        done += 1
+        for user in users[name]:
+            needs[user].discard(name)
+            if not needs[user]:
+                ready.append(user)
+    if len(ready) < len(pending):
+        left = [name for name in pending if name not in namespace]
+        raise ExpressionError(f"parameters {', '.join(left)} refer to each other in a cycle",
+                              file=file, line=_line(raw, left[0]))
+    return namespace
+
+
+def _strings_in(value):
+    if isinstance(value, str):
+        yield value
+    elif isinstance(value, list):
+        for v in value:
+            yield from _strings_in(v)
+
+
+def parse_signal(text: Any, what: str, file: str, line: int | None) -> tuple[str, str]:
+    if not isinstance(text, str) or "." not in text:
+        raise ConfigError(f"{what}: '{text}' is not a signal name of the form block.port",
+                          file=file, line=line)
+    block, port = text.strip().rsplit(".", 1)
+    if not block or not port:
+        raise ConfigError(f"{what}: '{text}' is not a signal name of the form block.port",
+                          file=file, line=line)
+    return block, port
+
+
+def _parse_connection(text: Any, file: str, line: int | None):
+    if not isinstance(text, str) or "->" not in text:
+        raise WiringError(f"connection {text!r} must have the form 'block.out -> block.in[, ...]'",
+                          file=file, line=line)
+    left, right = text.split("->", 1)
+    src = parse_signal(left, f"connection '{text}'", file, line)
+    dsts = [parse_signal(part, f"connection '{text}'", file, line)
+            for part in right.split(",") if part.strip()]
+    if not dsts:
+        raise WiringError(f"connection '{text}' has no destination", file=file, line=line)
+    return src, dsts
+
+
+# ---------------------------------------------------------------------------- expansion
+class _Failed(Exception):
+    """A block or subsystem that was already reported: connections to it are skipped."""
+
+
+def _suggest(name: str, names, what: str) -> str:
+    import difflib
+    names = list(names)
+    close = difflib.get_close_matches(name, names, n=1)
+    if close:
+        return f"did you mean '{close[0]}'?"
+    return f"{what} are: {', '.join(names) or '(none)'}"
+
+
+class _Level:
+    """One diagram file being expanded (the top level or a subsystem).
+
+    ``sets`` holds the ``--set`` paths below this level, ``{("blk", "param"): value,
+    ("sub", "param"): value, ("sub", "blk", "param"): value, ...}``.  ``errors`` is shared by
+    all levels of one load: a bad block or connection is recorded and expansion goes on, so
+    ``fwdstep validate`` can report every mistake at once."""
+
+    def __init__(self, doc: LineDict, file: str, namespace: dict, prefix: str, stack: tuple,
+                 cache: dict | None = None, sets: dict | None = None,
+                 errors: list | None = None, budget: Budget | None = None,
+                 search: SearchPath | None = None):
+        self.doc, self.file, self.ns, self.prefix, self.stack = doc, file, namespace, prefix, stack
+        self.cache = cache
+        self.sets = sets or {}
+        self.errors = [] if errors is None else errors
+        self.budget = budget or Budget()
+        self.search = search or SearchPath(file)
+        self.blocks: list[BlockEntry] = []
+        self.connections: list[Connection] = []
+        self.local_blocks: dict[str, str] = {}  # local name -> "block" | "subsystem" | "failed"
+        self.children: dict[str, "_Level"] = {}       # subsystem -> its expanded level
+        self.sub_inputs: dict[str, dict] = {}         # subsystem -> input name -> [(blk, port)]
+        self.sub_outputs: dict[str, dict] = {}        # subsystem -> output name -> (blk, port)
+        self.aliases: dict[str, str] = {}
+        self.input_ports: dict = {}     # (block, port) inside -> (outermost "sub.port", file, line)
+
+    def full(self, local: str) -> str:
+        return f"{self.prefix}{local}"
+
+    def dotted(self, *parts) -> str:
+        """A --set path as the user writes it: 'plant.arm.q0'."""
+        return ".".join([p for p in self.prefix.split("/") if p] + list(parts))
+
+    def _record(self, exc: DiagramError) -> None:
+        if getattr(exc, "fatal", False):
+            raise exc
+        self.errors.append(exc)
+
+    def expand(self):
+        doc, file = self.doc, self.file
+        blocks = doc.get("blocks")
+        if blocks is None:
+            raise ConfigError("the diagram has no 'blocks:' section", file=file, line=doc.line)
+        blocks = _mapping(blocks, "blocks", file, _line(doc, "blocks"))
+        if not blocks:
+            raise ConfigError("'blocks:' is empty", file=file, line=_line(doc, "blocks"))
+        sets: dict = {}
+        for path, value in self.sets.items():
+            sets.setdefault(path[0], {})[path[1:]] = value
+        for first, below in sets.items():
+            if first not in blocks:
+                what = "the diagram" if not self.prefix else f"subsystem '{self.prefix[:-1]}'"
+                names = [b for b in blocks if isinstance(b, str)]
+                self._record(ConfigError(
+                    f"--set {self.dotted(first, *next(iter(below)))}=...: {what} has no block "
+                    f"'{first}'; "
+                    f"{_suggest(first, names, 'blocks')}", file=file, line=_line(doc, "blocks")))
+        for name, body in blocks.items():
+            line = _line(blocks, name)
+            try:
+                if not isinstance(name, str) or not _NAME.match(name):
+                    raise ConfigError(f"block name '{name}' is not valid (letters, digits and _, "
+                                      "not starting with a digit)", file=file, line=line)
+                if not isinstance(body, dict):
+                    raise ConfigError(f"block '{name}' must be a mapping with a 'type:' key",
+                                      file=file, line=line)
+                if "type" not in body:
+                    raise ConfigError(f"block '{name}' has no 'type:' (the block type, e.g. "
+                                      "'type: Gain'; 'fwdstep blocks' lists them)", file=file,
+                                      line=line)
+                if body["type"] == "subsystem":
+                    self._expand_subsystem(name, body, line, sets.get(name, {}))
+                else:
+                    self._add_block(name, body, line, sets.get(name, {}))
+            except _Failed:         # its inner mistakes are recorded already
+                self.local_blocks[name] = "failed"
+            except DiagramError as exc:
+                self._record(exc)
+                if isinstance(name, str):
+                    self.local_blocks[name] = "failed"
+        self._connections()
+
+    def _add_block(self, name: str, body: LineDict, line, sets: dict):
+        file = self.file
+        type_name = body["type"]
+        try:
+            cls = lookup(str(type_name))
+        except DiagramError as exc:
+            raise exc.located(file, _line(body, "type")) from None
+        self.budget.add_block(self.full(name), file, line)
+        items = [(key, value, _line(body, key), False) for key, value in body.items()
+                 if key != "type"]
+        for rest, value in sets.items():
+            key = rest[0]
+            if len(rest) != 1 or key not in cls.params:
+                shown = self.dotted(name, *rest)
+                if len(rest) != 1:
+                    why = (f"block '{self.full(name)}' is a {type_name}, not a subsystem; write "
+                           f"{self.dotted(name)}.PARAMETER")
+                else:
+                    why = (f"block '{self.full(name)}' ({type_name}) has no parameter '{key}'; "
+                           f"{_suggest(key, cls.params, 'parameters')}")
+                raise ParameterError(f"--set {shown}=...: {why}", file=file, line=line,
+                                     block=self.full(name))
+            items = [item for item in items if item[0] != key]
+            items.append((key, value, _line(body, key) if key in body else line, True))
+        params = {}
+        key_lines = {}
+        for key, value, kline, from_set in items:
+            key_lines[key] = kline
+            what = (f"--set {self.dotted(name, key)}" if from_set else
+                    f"block '{self.full(name)}' parameter '{key}'")
+            decl = cls.params.get(key)
+            if decl is None:
+                raise ParameterError(f"block '{self.full(name)}' ({type_name}) has no parameter "
+                                     f"'{key}'; valid parameters are: "
+                                     f"{', '.join(cls.params) or '(none)'}", file=file,
+                                     line=kline, block=self.full(name))
+            if decl.kind in ("str", "choice"):
+                params[key] = value
+            elif decl.kind == "bool" and isinstance(value, bool):
+                params[key] = value
+            else:
+                try:
+                    params[key] = (evaluate_ragged(value, self.ns, what) if decl.ragged else
+                                   evaluate_value(value, self.ns, what))
+                    if not (isinstance(value, str) and value.strip() in self.ns):
+                        self.budget.charge(params[key], what)    # a bare name shares its array
+                except DiagramError as exc:
+                    raise exc.located(file, kline) from None
+        self.local_blocks[name] = "block"
+        self.blocks.append(BlockEntry(self.full(name), str(type_name), cls, params, file, line,
+                                      key_lines))
+
+    def _expand_subsystem(self, name: str, body: LineDict, line, sets: dict):
+        file = self.file
+        allowed = SUBSYSTEM_KEYS
+        for key in body:
+            if key not in allowed:
+                raise ParameterError(f"subsystem '{self.full(name)}' has no key '{key}'; keys are: "
+                                     f"{', '.join(allowed)}", file=file, line=_line(body, key))
+        if "file" not in body or not isinstance(body["file"], str):
+            raise ConfigError(f"subsystem '{self.full(name)}' needs 'file:' (a path to a diagram)",
+                              file=file, line=line)
+        if len(self.stack) > MAX_SUBSYSTEM_DEPTH:     # stack = this file and its parents
+            raise ConfigError(f"subsystems are nested more than {MAX_SUBSYSTEM_DEPTH} deep",
+                              file=file, line=line)
+        path = self.search.resolve(body["file"], file, f"subsystem '{self.full(name)}'",
+                                   _line(body, "file"))
+        if os.path.realpath(path) in self.stack:     # realpath: symbolic links too
+            chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
+            raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
+                              file=file, line=_line(body, "file"))
+        child_doc = self.search.documents.get(os.path.realpath(path))
+        if child_doc is None:       # each file parsed once per load; expansion never mutates it
+            child_doc = self.search.documents[os.path.realpath(path)] = _read_document(
+                path, self.cache)
+        passed = _mapping(body.get("parameters"), "parameters", file, _line(body, "parameters"))
+        child_params = child_doc.get("parameters") or {}
+        child_blocks = child_doc.get("blocks") if isinstance(child_doc.get("blocks"), dict) else {}
+        passed_items = [(key, value, _line(passed, key), f"subsystem '{self.full(name)}' "
+                         f"parameter '{key}'") for key, value in passed.items()]
+        child_sets = {}
+        for rest, value in sets.items():
+            if len(rest) == 1 and rest[0] in child_params:
+                passed_items = [item for item in passed_items if item[0] != rest[0]]
+                passed_items.append((rest[0], value, _line(body, "parameters") or line,
+                                     f"--set {self.dotted(name, rest[0])}"))
+            elif len(rest) == 1:
+                raise ParameterError(
+                    f"--set {self.dotted(name, rest[0])}=...: subsystem '{self.full(name)}' "
+                    f"({body['file']}) has no parameter '{rest[0]}'; "
+                    f"{_suggest(rest[0], list(child_params), 'parameters')} (a block's "
+                    f"parameter is {self.dotted(name)}.BLOCK.PARAMETER)", file=file, line=line)
+            else:
+                child_sets[rest] = value
+        overrides = {}
+        for key, value, kline, what in passed_items:
+            try:
+                overrides[key] = evaluate_value(value, self.ns, what)
+            except DiagramError as exc:
+                raise exc.located(file, kline) from None
+        for key, value, kline, what in passed_items:
+            if key not in child_params:
+                known = ", ".join(child_params) or "(none)"
+                raise ParameterError(f"subsystem '{self.full(name)}' ({body['file']}) has no "
+                                     f"parameter '{key}'; parameters are: {known}", file=file,
+                                     line=kline)
+        ns = resolve_parameters(child_params, {}, path, preset=overrides, budget=self.budget)
+        child = _Level(child_doc, path, ns, f"{self.full(name)}/",
+                       stack=self.stack + (os.path.realpath(path),), cache=self.cache,
+                       sets=child_sets, errors=self.errors, budget=self.budget,
+                       search=self.search)
+        before = len(self.errors)
+        child.expand()
+        if len(self.errors) > before:
+            raise _Failed()
+        ports = _mapping(child_doc.get("ports"), "ports", path, _line(child_doc, "ports"))
+        ins = _mapping(ports.get("inputs"), "ports.inputs", path, _line(ports, "inputs"))
+        outs = _mapping(ports.get("outputs"), "ports.outputs", path, _line(ports, "outputs"))
+        self.sub_inputs[name] = {}
+        for pname, targets in ins.items():
+            tl = targets if isinstance(targets, list) else [targets]
+            resolved = []
+            for tgt in tl:
+                blk, port = parse_signal(tgt, f"subsystem input '{pname}'", path, _line(ins, pname))
+                resolved.extend(child.resolve_dst(blk, port, path, _line(ins, pname),
+                                                  f"subsystem input '{pname}'"))
+            self.sub_inputs[name][pname] = resolved
+            for target in resolved:
+                self.input_ports[target] = (f"{self.full(name)}.{pname}", file, line)
+        self.sub_outputs[name] = {}
+        for pname, source in outs.items():
+            blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
+            src = child.resolve_src(blk, port, path, _line(outs, pname),
+                                    f"subsystem output '{pname}'")
+            self.sub_outputs[name][pname] = src
+            self.aliases[f"{self.full(name)}.{pname}"] = f"{src[0]}.{src[1]}"
+        self.aliases.update(child.aliases)
+        for target, where in child.input_ports.items():
+            self.input_ports.setdefault(target, where)
+        self.blocks.extend(child.blocks)
+        self.connections.extend(child.connections)
+        if "sample_period" in body or "sample_offset" in body:   # a sampled controller
+            from fwdstep.structure.sampled import sample_subsystem
+            sample_subsystem(self, name, body, file, line)
+        self.children[name] = child
+        self.local_blocks[name] = "subsystem"
+
+    def resolve_src(self, blk: str, port: str, file, line, what: str = "connection") -> tuple:
+        """The (block, port) that drives ``blk.port`` at this level (through subsystems)."""
+        return self._resolve(blk, port, "output", file, line, what)
+
+    def resolve_dst(self, blk: str, port: str, file, line, what: str = "connection") -> list:
+        """The inner (block, port) inputs that ``blk.port`` at this level stands for."""
+        return self._resolve(blk, port, "input", file, line, what)
+
+    def _resolve(self, blk, port, direction, file, line, what):
+        head, dot, rest = blk.partition(".")
+        kind = self.local_blocks.get(head)
+        if kind is None:
+            raise self._no_block(head, file, line, what)
+        if kind == "failed":
+            raise _Failed()
+        if dot:             # sub.block.port: a port of a block inside a subsystem
+            if kind != "subsystem":
+                raise WiringError(f"{what} names '{blk}.{port}', but '{self.full(head)}' is a "
+                                  "block, not a subsystem", file=file, line=line,
+                                  block=self.full(head))
+            return self.children[head]._resolve(rest, port, direction, file, line, what)
+        if kind != "subsystem":
+            own = (self.full(blk), port)
+            return own if direction == "output" else [own]
+        ports = self.sub_outputs[blk] if direction == "output" else self.sub_inputs[blk]
+        if port not in ports:
+            raise WiringError(f"subsystem '{self.full(blk)}' has no {direction} port '{port}'; "
+                              f"{direction} ports are: {', '.join(ports) or '(none)'}", file=file,
+                              line=line, block=self.full(blk), port=port)
+        return ports[port]
+
+    def _no_block(self, blk, file, line, what):
+        import difflib
+        names = list(self.local_blocks)
+        close = difflib.get_close_matches(blk, names, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else f"; blocks are: {', '.join(names)}"
+        return WiringError(f"{what} names block '{blk}', which does not exist{hint}",
+                           file=file, line=line, block=self.full(blk))
+
+    def _connections(self):
+        doc, file = self.doc, self.file
+        conns = doc.get("connections")
+        if conns is None:
+            return
+        if not isinstance(conns, list):
+            self._record(ConfigError("'connections:' must be a list of 'src.out -> dst.in' "
+                                     "strings", file=file, line=_line(doc, "connections")))
+            return
+        for i, text in enumerate(conns):
+            line = _line(conns, i)
+            try:
+                (sb, sp), dsts = _parse_connection(text, file, line)
+                src = self.resolve_src(sb, sp, file, line)
+                for db, dp in dsts:
+                    try:
+                        for dst in self.resolve_dst(db, dp, file, line):
+                            self.connections.append(Connection(src, dst, file, line, text))
+                    except _Failed:
+                        pass
+            except _Failed:
+                pass
+            except DiagramError as exc:
+                self._record(exc)
+
+
+SIGNAL_ENTRY_KEYS = ("signal", "label", "unit", "components")
+
+
+def signal_entry(entry, info: dict, where: str, file: str, line) -> Any:
+    """A ``log:``/``plots:`` entry -> its signal name; ``{signal: e.y, label: "Δq", unit: rad,
+    components: [joint 1, joint 2]}`` also records how figures name it in ``info``."""
+    if not isinstance(entry, dict):
+        return entry
+    extra = [k for k in entry if k not in SIGNAL_ENTRY_KEYS]
+    if extra or "signal" not in entry:
+        raise ConfigError(f"{where}: a signal mapping takes 'signal:' and optionally 'label:', "
+                          f"'unit:', 'components:'" + (f"; '{extra[0]}' is not one of them"
+                                                       if extra else ""), file=file, line=line)
+    comps = entry.get("components")
+    if comps is not None and not (isinstance(comps, list) and comps):
+        raise ConfigError(f"{where}: components of {entry['signal']} must be a list of names",
+                          file=file, line=line)
+    meta = {"label": None if entry.get("label") is None else str(entry["label"]),
+            "unit": str(entry.get("unit") or ""),
+            "components": None if comps is None else [str(c) for c in comps]}
+    old = info.setdefault(str(entry["signal"]), {"label": None, "unit": "", "components": None})
+    old.update({k: v for k, v in meta.items() if v})
+    return entry["signal"]
+
+
+def _read_document(path: str, cache: dict | None = None) -> LineDict:
+    """Parse and check a diagram file.  With ``cache`` (a dict kept by the caller, e.g. a
+    sweep building many variants), each file is parsed once per (path, mtime, size) and every
+    caller gets its own deep copy of the document."""
+    if cache is not None:
+        try:
+            st = os.stat(path)
+            key = (os.path.realpath(path), st.st_mtime_ns, st.st_size)
+        except OSError:
+            key = None
+        if key is not None:
+            if key not in cache:
+                cache[key] = _read_document(path)
+            return copy.deepcopy(cache[key])
+    check_regular_file(path)        # never open a FIFO, a device or stdin
+    doc = read_yaml_file(path)
+    if doc is None:
+        raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
+                        file=path, line=1)
+    if not isinstance(doc, dict):
+        raise YamlError(f"the top level must be a mapping (blocks:, connections:, ...), got "
+                        f"{kind_of(doc)}", file=path, line=getattr(doc, "line", 1))
+    if not any(key in TOP_LEVEL_KEYS for key in doc):
+        # not a diagram at all: say so without quoting any of its content
+        raise ConfigError(f"not a diagram: none of its {len(doc)} top-level keys is a diagram "
+                          f"section ({', '.join(TOP_LEVEL_KEYS)})", file=path, line=doc.line)
+    for key in doc:
+        if key not in TOP_LEVEL_KEYS:
+            import difflib
+            close = difflib.get_close_matches(str(key), TOP_LEVEL_KEYS, n=1)
+            hint = f"; did you mean '{close[0]}'?" if close else ""
+            raise ConfigError(f"unknown top-level key '{key}'{hint} (valid keys: "
+                              f"{', '.join(TOP_LEVEL_KEYS)})", file=path, line=_line(doc, key))
+    return doc
+
+
+def defaults_note(sim: SimulationConfig) -> str | None:
+    """The run header's line for simulation settings a diagram did not give, or None."""
+    if not sim.defaulted:
+        return None
+    values = {"t_final": f"t_final = {sim.t_final:g} s", "step": f"step = {sim.step:g} s"}
+    given = "no simulation: section" if not sim.given else \
+        f"no simulation.{', simulation.'.join(sim.defaulted)}"
+    return f"the diagram has {given}; using the defaults " + \
+        ", ".join(values[k] for k in sim.defaulted)
+
+
+def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
+    raw = _mapping(doc.get("simulation"), "simulation", file, _line(doc, "simulation"))
+    cfg = SimulationConfig()
+    cfg.defaulted = tuple(k for k in ("t_final", "step") if k not in raw)
+    cfg.given = doc.get("simulation") is not None
+    for key in raw:
+        if key not in SIMULATION_KEYS:
+            raise ConfigError(f"simulation has no setting '{key}'; settings are: "
+                              f"{', '.join(SIMULATION_KEYS)}", file=file, line=_line(raw, key))
+
+    def number(key):
+        if isinstance(raw[key], float) and not math.isfinite(raw[key]):
+            raise ConfigError(f"simulation.{key} must be a finite number, got {raw[key]}",
+                              file=file, line=_line(raw, key))
+        try:
+            v = evaluate_value(raw[key], ns, f"simulation.{key}")
+        except DiagramError as exc:
+            raise exc.located(file, _line(raw, key)) from None
+        if isinstance(v, bool) or not isinstance(v, float):
+            raise ConfigError(f"simulation.{key} must be a number, got {raw[key]!r}", file=file,
+                              line=_line(raw, key))
+        return v
+
+    if "solver" in raw:
+        if raw["solver"] not in SOLVER_NAMES:
+            raise ConfigError(f"simulation.solver '{raw['solver']}' is unknown; solvers are: "
+                              f"{', '.join(SOLVER_NAMES)}", file=file, line=_line(raw, "solver"))
+        cfg.solver = raw["solver"]
+    if "backend" in raw:
+        if raw["backend"] not in ("numpy", "compiled"):
+            raise ConfigError(f"simulation.backend '{raw['backend']}' is unknown; backends are: "
+                              "numpy, compiled", file=file, line=_line(raw, "backend"))
+        cfg.backend = raw["backend"]
+    if "t_final" in raw:
+        cfg.t_final = number("t_final")
+        if not cfg.t_final > 0 or not math.isfinite(cfg.t_final):
+            raise ConfigError(f"simulation.t_final must be a positive number, got {cfg.t_final:g}",
+                              file=file, line=_line(raw, "t_final"))
+    if "step" in raw:
+        cfg.step = number("step")
+        if not cfg.step > 0 or not math.isfinite(cfg.step):
+            raise ConfigError(f"simulation.step must be a positive finite number, got "
+                              f"{cfg.step:g}", file=file, line=_line(raw, "step"))
+    if cfg.step > cfg.t_final:
+        raise ConfigError(f"simulation.step ({cfg.step:g}) is larger than t_final "
+                          f"({cfg.t_final:g})", file=file, line=_line(raw, "step"))
+    steps = cfg.t_final / cfg.step
+    if steps > MAX_STEPS:
+        raise ConfigError(f"simulation would take {steps:.3g} steps (t_final / step); the limit "
+                          f"is {MAX_STEPS:.0e}", file=file, line=_line(raw, "step"))
+    if abs(steps - round(steps)) > 1e-6 * max(1.0, steps):
+        raise ConfigError(f"simulation.t_final ({cfg.t_final:g}) is not a whole number of steps of "
+                          f"{cfg.step:g}", file=file, line=_line(raw, "t_final"))
+    if "log_every" in raw:
+        v = number("log_every")
+        if v != math.floor(v) or v < 1:
+            raise ConfigError(f"simulation.log_every must be a whole number of steps >= 1, got "
+                              f"{v:g}", file=file, line=_line(raw, "log_every"))
+        cfg.log_every = int(v)
+    for key in ("rtol", "atol"):
+        if key in raw:
+            setattr(cfg, key, number(key))
+            if not getattr(cfg, key) > 0:
+                raise ConfigError(f"simulation.{key} must be positive, got {raw[key]!r}",
+                                  file=file, line=_line(raw, key))
+    if "bound" in raw:
+        cfg.bound = number("bound")
+        if not cfg.bound > 0:
+            raise ConfigError(f"simulation.bound must be positive, got {cfg.bound:g}", file=file,
+                              line=_line(raw, "bound"))
+    return cfg
+
+
+def count_blocks(path: str, doc, search: SearchPath, cache: dict | None,
+                 memo: dict | None = None, stack: tuple = ()) -> int:
+    """Blocks of ``doc`` after subsystem expansion, counted from the files alone (each parsed
+    once), so a fan-out of small files is refused before anything is built.  Files that cannot
+    be found or read count 0 here: expansion reports them."""
+    memo = {} if memo is None else memo
+    blocks = doc.get("blocks") if isinstance(doc, dict) else None
+    if not isinstance(blocks, dict):
+        return 0
+    total = 0
+    for body in blocks.values():
+        if not (isinstance(body, dict) and body.get("type") == "subsystem"
+                and isinstance(body.get("file"), str)):
+            total += 1
+            continue
+        try:
+            child = search.resolve(body["file"], path, "subsystem", None)
+        except DiagramError:
+            continue
+        key = os.path.realpath(child)
+        if key in stack or len(stack) > MAX_SUBSYSTEM_DEPTH:
+            continue
+        if key not in memo:
+            try:
+                child_doc = search.documents.get(key)
+                if child_doc is None:
+                    child_doc = search.documents[key] = _read_document(child, cache)
+            except DiagramError:
+                memo[key] = 0
+                continue
+            memo[key] = count_blocks(child, child_doc, search, cache, memo, stack + (key,))
+        total += memo[key]
+    return total
+
+
+def split_overrides(overrides: dict, parameters) -> tuple:
+    """``--set`` names -> (top-level parameters, simulation settings, log list or None,
+    block/subsystem paths ``{("plant", "arm", "q0"): value}``)."""
+    params, sim, log, paths = {}, {}, None, {}
+    for name, value in (overrides or {}).items():
+        if name == "log" and "log" not in (parameters or {}):
+            log = value if isinstance(value, list) else [value]
+        elif name.startswith("simulation."):
+            sim[name.split(".", 1)[1]] = value
+        elif "." in name:
+            paths[tuple(name.split("."))] = value
+        else:
+            params[name] = value
+    return params, sim, log, paths
+
+
+def load_spec(path: str, overrides: dict | None = None,
+              cache: dict | None = None) -> DiagramSpec:
+    """Read, check and flatten a diagram file (and its subsystems).  ``cache``: see
+    ``_read_document`` (parse each file once across many loads).
+
+    ``overrides`` (``--set``): ``NAME`` a top-level parameter, ``simulation.SETTING``,
+    ``log`` (the list of logged signals), ``BLOCK.PARAM`` a block's parameter,
+    ``SUB.PARAM`` a subsystem's parameter, ``SUB.BLOCK.PARAM`` (any depth) a parameter of a
+    block inside a subsystem.  Every mistake that can be found is collected; the first is
+    raised with the others in its ``more`` attribute (``fwdstep validate`` prints them all)."""
+    errors: list = []
+    spec = None
+    try:
+        spec = _load(os.path.normpath(path), overrides, cache, errors)
+    except DiagramError as exc:
+        errors.append(exc)
+    if errors:
+        first = errors[0]
+        first.more = errors[1:]
+        raise first
+    return spec
+
+
+def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -> DiagramSpec:
+    cache = {} if cache is None else cache     # a subsystem used many times is parsed once
+    doc = _read_document(path, cache)
+    budget = Budget()
+    overrides, sim_overrides, log_override, paths = split_overrides(
+        overrides, doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {})
+    ns = resolve_parameters(doc.get("parameters"), overrides, path,
+                            line=_line(doc, "parameters"), budget=budget)
+    if sim_overrides or log_override is not None:  # --set simulation.t_final=20, --set log=[..]
+        original, doc = doc, LineDict(doc)
+        doc.line, doc.key_lines = original.line, dict(getattr(original, "key_lines", {}))
+    if sim_overrides:
+        sim_raw = _mapping(doc.get("simulation"), "simulation", path, _line(doc, "simulation"))
+        merged = LineDict(sim_raw)
+        merged.line, merged.key_lines = sim_raw.line, dict(getattr(sim_raw, "key_lines", {}))
+        merged.update(sim_overrides)
+        doc["simulation"] = merged
+    if log_override is not None:
+        doc["log"] = log_override
+    search = SearchPath(path)
+    total = count_blocks(path, doc, search, cache)
+    if total > MAX_BLOCKS:
+        raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
+                          f"limit is {MAX_BLOCKS}", file=path, line=_line(doc, "blocks"))
+    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
+                   sets=paths, errors=errors, budget=budget, search=search)
+    level.expand()
+    sim = None
+    try:
+        sim = _simulation(doc, ns, path)
+    except DiagramError as exc:
+        errors.append(exc)
+    lines, signal_info = {}, {}
+    log = doc.get("log")
+    if log is not None:
+        if not isinstance(log, list):
+            raise ConfigError("'log:' must be a list of block.port names", file=path,
+                              line=_line(doc, "log"))
+        log = [signal_entry(name, signal_info, "log", path, _line(log, i))
+               for i, name in enumerate(log)]
+        for i, name in enumerate(log):
+            parse_signal(name, "log", path, _line(doc["log"], i))
+            lines[name] = _line(doc["log"], i)
+    plots_raw = _mapping(doc.get("plots"), "plots", path, _line(doc, "plots"))
+    plots, plot_scales = {}, {}
+    for fig, panels in plots_raw.items():
+        fline = _line(plots_raw, fig)
+        if not isinstance(fig, str) or not _FIGURE.match(fig):
+            raise ConfigError(f"plot name '{fig}' must be letters, digits, '_' or '-' (it becomes "
+                              "a file name)", file=path, line=fline)
+        if isinstance(panels, str):
+            panels = [panels]
+        if not isinstance(panels, list) or not panels:
+            raise ConfigError(f"plot '{fig}' must be a list of panels", file=path, line=fline)
+        out, scales = [], []
+        for panel in panels:
+            scale = "linear"
+            if isinstance(panel, dict) and "signal" not in panel:   # {signals: [...], scale: log}
+                extra = [k for k in panel if k not in ("signals", "scale")]
+                if extra or "signals" not in panel or panel.get("scale", "linear") not in (
+                        "linear", "log"):
+                    raise ConfigError(f"plot '{fig}': a panel mapping takes 'signals:' and "
+                                      "optionally 'scale: linear | log'", file=path, line=fline)
+                scale = panel.get("scale", "linear")
+                panel = panel["signals"]
+            sigs = panel if isinstance(panel, list) else [panel]
+            sigs = [signal_entry(s, signal_info, f"plot '{fig}'", path, fline) for s in sigs]
+            scales.append(scale)
+            for s in sigs:
+                parse_signal(s, f"plot '{fig}'", path, fline)
+                lines.setdefault(s, fline)
+            out.append([str(s) for s in sigs])
+        plots[fig] = out
+        plot_scales[fig] = scales
+    metrics_raw = _mapping(doc.get("metrics"), "metrics", path, _line(doc, "metrics"))
+    metrics = {}
+    for key, value in metrics_raw.items():
+        if key not in ("error", "tail"):
+            raise ConfigError(f"metrics has no setting '{key}'; settings are: error, tail",
+                              file=path, line=_line(metrics_raw, key))
+        if key == "error":
+            parse_signal(value, "metrics.error", path, _line(metrics_raw, key))
+            lines.setdefault(value, _line(metrics_raw, key))
+            metrics["error"] = value
+        else:
+            v = evaluate_value(value, ns, "metrics.tail")
+            if not isinstance(v, float) or not 0 < v <= 1:
+                raise ConfigError("metrics.tail must be a fraction in (0, 1]", file=path,
+                                  line=_line(metrics_raw, key))
+            metrics["tail"] = v
+    spec = DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
+                       blocks=level.blocks, connections=level.connections, simulation=sim,
+                       log=list(log) if log is not None else None, plots=plots, metrics=metrics,
+                       aliases=level.aliases, lines=lines, plot_scales=plot_scales,
+                       input_ports=level.input_ports, signal_info=signal_info)
+    if not errors:
+        from fwdstep.structure.shapes import infer_shapes
+        infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
+    return spec

@@ -1,0 +1,348 @@
+"""Compare saved runs: the same signals overlaid, their differences, and a metrics table.
+
+Python::
+
+    c = fwdstep.compare(["out/theorem1", "out/theorem1_ell3"])     # dirs or Result objects
+    c.table          # one row per run: status, t reached, metrics, max |difference| per signal
+    c.figure         # matplotlib Figure (no pyplot): per signal an overlay and a difference panel
+    c.save("out/cmp")                                              # compare.png/.csv
+
+Command line: ``fwdstep compare RUN_A RUN_B [...] [-o DIR] [--signal S ...]``.
+Differences are taken against the first run, on its time grid (linear interpolation when the
+other run was recorded at other times; outside the other run's time span they are NaN, never
+extrapolated).  A batch result counts as one run per variant: ``DIR@3`` is variant 3.
+A sweep directory (``fwdstep sweep -o SWEEP``) counts as one run per variant whose signal was
+saved; ``SWEEP@3`` is its variant 3 (the row ``variant = 3`` of sweep.csv), ``SWEEP@3,7``
+variants 3 and 7.  A sweep keeps the diagram's error signal (``metrics: error:``) of each
+variant, under its real name, label and unit, so it also compares with a run of the diagram.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from fwdstep.core.errors import OutputError
+from fwdstep.results.plotting import (check_formats, line_colors, new_figure, place_legend, save_figure,
+                       signal_info, time_axis, finish_figure, FORMATS)
+from fwdstep.results.result import Result, load_result
+
+CSV_FILE = "compare.csv"
+#: how many variants of a sweep the report's comparison figure overlays
+MAX_SWEEP_SHOWN = 8
+FIGURE_NAME = "compare"
+_STYLES = ("-", "--", ":", "-.")
+
+
+@dataclass
+class Run:
+    label: str
+    result: Result
+    variant: int | None = None
+
+    def data(self, name: str) -> np.ndarray:
+        arr = self.result[name]
+        return arr[:, self.variant] if self.variant is not None else arr
+
+    def metrics(self) -> dict:
+        m = self.result.metrics()
+        if isinstance(m, list):
+            return m[self.variant or 0] if m else {}
+        return m or {}
+
+
+@dataclass
+class Comparison:
+    runs: list
+    signals: list
+    differences: dict            # signal -> list (one per run after the first) of (T, ...) arrays
+    table: list                  # rows: dict column -> value
+    figure: object
+
+    def save(self, outdir: str, formats=("png",), force: bool = True) -> list:
+        """Write compare.csv and compare.<fmt> into ``outdir`` through fwdstep.results.outputs."""
+        from fwdstep.results.outputs import OutputDir
+        formats = check_formats(formats)
+        names = [CSV_FILE] + [f"{FIGURE_NAME}.{f}" for f in formats]
+        with OutputDir(outdir, force=force, expected=names) as out:
+            with open(os.path.join(out.dir, CSV_FILE), "w", newline="") as fh:
+                fh.write(table_csv(self.table))
+            save_figure(self.figure, out.dir, FIGURE_NAME, formats)
+            return out.commit()
+
+
+def open_run(source, label: str | None = None) -> list:
+    """Runs from a Result, a run directory, ``DIR@k`` (variant k of a saved batch), a sweep
+    directory (every variant whose signal was saved) or ``SWEEP@k`` / ``SWEEP@3,7``."""
+    if isinstance(source, Result):
+        r, name, variant = source, label or "run", None
+    else:
+        text = str(source)
+        variant = None
+        if "@" in text and not os.path.isdir(text):
+            text, _, idx = text.rpartition("@")
+            try:
+                variant = [int(k) for k in idx.split(",")]
+            except ValueError:
+                raise OutputError(f"'{source}': after '@' come variant numbers, e.g. "
+                                  f"{text}@3 or {text}@3,7") from None
+        if is_sweep(text):
+            return sweep_runs(text, variant, label)
+        if variant is not None and len(variant) > 1:
+            return [run for k in variant for run in open_run(f"{text}@{k}", label)]
+        variant = variant[0] if variant else None
+        r = load_result(text)
+        name = label or _short(text)
+        if variant is not None and not 0 <= variant < r.batch:
+            raise OutputError(f"{text} has {r.batch} variant(s); there is no variant {variant}")
+    if variant is None and r.batch > 1:
+        return [Run(f"{name}@{b}", r, b) for b in range(r.batch)]
+    return [Run(name if variant is None else f"{name}@{variant}", r, variant)]
+
+
+def is_sweep(path: str) -> bool:
+    """A directory written by ``fwdstep sweep`` (sweep.csv and parts/, no result.npz)."""
+    from fwdstep.sweeps.sweep import CSV_FILE as SWEEP_CSV, PARTS_DIR
+    return (os.path.isdir(os.path.join(path, PARTS_DIR))
+            or os.path.isfile(os.path.join(path, SWEEP_CSV))) \
+        and not os.path.isfile(os.path.join(path, "result.npz"))
+
+
+def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None) -> list:
+    """The variants of a saved sweep as runs: the error signal under its real name, with the
+    diagram's label, unit and components (stored in ``parts/*.npz``), the variant's status and
+    metrics; legend entries say which parameter values each variant had.  ``wanted``: variant
+    numbers (default: every variant whose signal was saved)."""
+    import glob
+    import json
+    from fwdstep.sweeps.sweep import METRICS, PARTS_DIR
+    name = label or _short(outdir)
+    found: dict = {}
+    for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                part = {k: data[k] for k in data.files}
+        except (OSError, ValueError) as exc:
+            raise OutputError(f"cannot read {path}: {exc}") from None
+        for k, i in enumerate(part["indices"].tolist()):
+            found[i] = (part, k)
+    if not found:
+        raise OutputError(f"{outdir} holds no finished variant (parts/ is empty or missing)")
+    n = max(found) + 1
+    if wanted is None:
+        wanted = [i for i in sorted(found) if _has_signal(*found[i])]
+        if not wanted:
+            raise OutputError(f"{outdir}: no variant's signal was saved (the sweep ran with "
+                              "--no-signals); run it again without --no-signals")
+    runs = []
+    for i in wanted:
+        if i not in found:
+            raise OutputError(f"{outdir} has no finished variant {i}" + (
+                f" (its variants are 0..{n - 1}; resume the sweep to finish it)"
+                if i < n else f"; its variants are 0..{n - 1}"))
+        part, k = found[i]
+        if not _has_signal(part, k):
+            raise OutputError(f"{outdir}: the signal of variant {i} was not saved (the sweep "
+                              "ran with --no-signals, which keeps only the plotted variants)")
+        info = json.loads(str(part["signal_info"])) if "signal_info" in part else \
+            {"name": "e", "real": "e"}                  # a sweep saved before names were kept
+        t, e = part["t"], part["e"][:, k]
+        rows = np.isfinite(e.reshape(len(t), -1)).any(axis=1)
+        last = int(np.nonzero(rows)[0][-1]) + 1 if rows.any() else 0
+        status = str(part["status"][k])
+        r = Result(t[:last], {info["real"]: e[:last, None]}, status=status,
+                   message=str(part["message"][k]))
+        r.signal_labels = {info["real"]: {key: info.get(key) for key in
+                                          ("label", "unit", "components")}}
+        r.aliases = {info["name"]: info["real"]}
+        metrics = ({m: float(x) for m, x in zip(METRICS, part["metrics"][k])}
+                   if status == "ok" else {})
+        r.stored = {"metrics": metrics, "metric_signal": info["name"]}
+        r.figure_panels, r.title, r.outdir = {}, "", outdir
+        r.diagram_file = str(part["diagram"]) if "diagram" in part else None
+        values = json.loads(str(part["values"][k]))
+        shown = ", ".join(f"{key}={_value_text(v)}" for key, v in values.items())
+        runs.append(Run(f"{name}@{i}" + (f" ({shown})" if shown else ""), r))
+    return runs
+
+
+def _has_signal(part: dict, k: int) -> bool:
+    return "e" in part and bool(part["has_signal"][k])
+
+
+def _value_text(value) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def _short(path: str) -> str:
+    return os.path.basename(os.path.normpath(path)) or path
+
+
+def default_signals(runs: list) -> list:
+    """The signals of the first run's figures (else its error signal) that every run has."""
+    first = runs[0].result
+    from fwdstep.results.plotting import figure_specs
+    wanted = []
+    for panels in figure_specs(first).values():
+        for sigs, _ in panels:
+            wanted += [s for s in sigs if s not in wanted]
+    if not wanted:
+        err = (getattr(first, "stored", None) or {}).get("metric_signal")
+        if first.diagram is not None and "error" in first.diagram.spec.metrics:
+            err = first.diagram.spec.metrics["error"]
+        wanted = [err] if err else list(first.names)
+    return [s for s in wanted if all(s in run.result for run in runs)]
+
+
+def difference(ref: Run, other: Run, name: str) -> np.ndarray:
+    """other - ref on ref's time grid (NaN outside other's time span)."""
+    t0, t1 = ref.result.t, other.result.t
+    a, b = ref.data(name), other.data(name)
+    if a.shape[1:] != b.shape[1:]:
+        raise OutputError(f"signal {name} has shape {a.shape[1:]} in {ref.label} but "
+                          f"{b.shape[1:]} in {other.label}")
+    if len(t0) == len(t1) and np.array_equal(t0, t1):
+        return b - a
+    flat = b.reshape(len(t1), -1)
+    out = np.empty((len(t0), flat.shape[1]))
+    for j in range(flat.shape[1]):
+        out[:, j] = np.interp(t0, t1, flat[:, j], left=np.nan, right=np.nan)
+    return out.reshape((len(t0),) + a.shape[1:]) - a
+
+
+def compare(sources, signals=None, labels=None) -> Comparison:
+    """Compare runs (directories, ``DIR@k`` variants or Result objects); see the module doc."""
+    runs = []
+    for k, src in enumerate(sources):
+        runs += open_run(src, labels[k] if labels else None)
+    if len(runs) < 2:
+        raise OutputError("compare needs at least two runs (or a batch with two variants)")
+    seen: dict = {}
+    for run in runs:                               # same directory names: keep them apart
+        seen[run.label] = seen.get(run.label, 0) + 1
+    for k, run in enumerate(runs):
+        if seen[run.label] > 1:
+            run.label = f"{run.label} ({k + 1})"
+    if signals is None:
+        signals = default_signals(runs)
+    else:
+        signals = [signals] if isinstance(signals, str) else list(signals)
+        for s in signals:
+            for run in runs:
+                if s not in run.result:
+                    raise OutputError(f"signal {s} is not in {run.label}; its signals are: "
+                                      f"{', '.join(run.result.names)}")
+    if not signals:
+        raise OutputError("the runs have no signal in common to compare; name one with --signal")
+    diffs = {s: [difference(runs[0], other, s) for other in runs[1:]] for s in signals}
+    table = metrics_table(runs, diffs)
+    figure = comparison_figure(runs, signals, diffs)
+    return Comparison(runs, signals, diffs, table, figure)
+
+
+def metrics_table(runs: list, diffs: dict) -> list:
+    rows = []
+    for k, run in enumerate(runs):
+        r = run.result
+        row = {"run": run.label, "status": r.status,
+               "t_reached": float(r.t[-1]) if len(r.t) else None}
+        row.update({key: val for key, val in run.metrics().items()})
+        for s, ds in diffs.items():
+            if k == 0:
+                row[f"max |diff {s}|"] = 0.0
+            else:
+                d = np.abs(ds[k - 1])
+                row[f"max |diff {s}|"] = float(np.nanmax(d)) if np.isfinite(d).any() else None
+        rows.append(row)
+    return rows
+
+
+def table_csv(rows: list) -> str:
+    columns = list(dict.fromkeys(c for row in rows for c in row))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=columns, lineterminator="\n")
+    w.writeheader()
+    for row in rows:
+        w.writerow({c: ("" if row.get(c) is None else
+                        repr(row[c]) if isinstance(row.get(c), float) else row[c])
+                    for c in columns})
+    return buf.getvalue()
+
+
+def comparison_figure(runs: list, signals: list, diffs: dict):
+    """Per signal: the runs overlaid (one colour per run, one line style per component) and
+    the differences to the first run."""
+    fig, axes = new_figure(2 * len(signals), height=2.3 * 2 * len(signals) + 0.9)
+    colors = line_colors(len(runs))
+    t_ref = runs[0].result.t
+    for n, name in enumerate(signals):
+        info = signal_info(runs[0].result, name)
+        over, diff = axes[2 * n], axes[2 * n + 1]
+        for k, run in enumerate(runs):
+            data = run.data(name)
+            flat = data.reshape(len(run.result.t), -1)
+            for j in range(flat.shape[1]):
+                comp = _component(info, data.shape[1:], j)
+                over.plot(run.result.t, flat[:, j], color=colors[k], ls=_STYLES[j % 4], lw=1.1,
+                          label=f"{run.label}" + (f", {comp}" if comp else ""))
+            if k:
+                d = diffs[name][k - 1].reshape(len(t_ref), -1)
+                for j in range(d.shape[1]):
+                    comp = _component(info, data.shape[1:], j)
+                    diff.plot(t_ref, d[:, j], color=colors[k], ls=_STYLES[j % 4], lw=1.1,
+                              label=f"{run.label} − {runs[0].label}" + (f", {comp}" if comp
+                                                                        else ""))
+        over.set_ylabel(info.axis_label(), fontsize=9)
+        diff.set_ylabel(f"Δ {info.label}" + (f" [{info.unit}]" if info.unit else ""), fontsize=9)
+        for ax in (over, diff):
+            time_axis(ax, t_ref)
+            place_legend(ax)
+    axes[-1].set_xlabel("$t$ [s]", fontsize=9)
+    names = ", ".join(r.label for r in runs)
+    finish_figure(fig, f"Comparison of {names}" if len(names) <= 90 else
+                  f"Comparison of {len(runs)} runs", f"differences against {runs[0].label}")
+    return fig
+
+
+def _component(info, shape: tuple, j: int) -> str:
+    if not shape:
+        return ""
+    return info.component(np.unravel_index(j, shape), shape)
+
+
+def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=None,
+                force: bool = True) -> int:
+    """``fwdstep compare``: exit 0, or 2 with one line on stderr."""
+    import sys
+    from fwdstep.core.errors import FwdstepError, one_line
+    try:
+        c = compare(sources, signals or None)
+        outdir = outdir or os.path.join("out", "compare")
+        written = c.save(outdir, tuple(formats or ("png",)), force=force)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    cols = list(c.table[0])
+    widths = {col: max([len(col), 10] + [len(_fmt(row.get(col))) for row in c.table])
+              for col in cols}
+    print("  ".join(f"{col:>{widths[col]}}" for col in cols))
+    for row in c.table:
+        print("  ".join(f"{_fmt(row.get(col)):>{widths[col]}}" for col in cols))
+    print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
+    return 0
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3e}"
+    return str(v)
+
+
+__all__ = ["compare", "Comparison", "cmd_compare", "FORMATS"]

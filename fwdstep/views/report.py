@@ -1,0 +1,279 @@
+"""Self-contained HTML: a Result's notebook summary and the ``fwdstep report`` page."""
+from __future__ import annotations
+
+import html
+import os
+
+import numpy as np
+
+
+def result_summary_html(result) -> str:
+    """A short summary of a Result for notebooks: status, time reached, metrics, signals."""
+    m = result.metrics()
+    rows = [("status", result.status + (f" — {result.message}" if result.message else "")),
+            ("t reached", f"{result.t[-1]:g} s" if len(result.t) else "nothing recorded"),
+            ("steps", str(result.steps)), ("variants", str(result.batch))]
+    if isinstance(m, dict):
+        rows += [(k.replace("_", " "), f"{v:.3e}" if isinstance(v, float) else str(v))
+                 for k, v in m.items()]
+    rows.append(("signals", ", ".join(result.names)))
+    body = "".join(f"<tr><th style='text-align:left'>{html.escape(k)}</th>"
+                   f"<td style='text-align:left'>{html.escape(v)}</td></tr>" for k, v in rows)
+    return f"<div><b>fwdstep Result</b><table>{body}</table></div>"
+
+
+# ---------------------------------------------------------------------------- the report page
+REPORT_FILE = "report.html"
+_MARK = "written by fwdstep report"
+
+_CSS = """
+body{font-family:Helvetica,Arial,sans-serif;margin:2em auto;max-width:1100px;color:#222}
+h1{font-size:1.5em;margin-bottom:.2em} h2{font-size:1.15em;border-bottom:1px solid #ccc;
+margin-top:1.6em} table{border-collapse:collapse;font-size:.85em;margin:.4em 0}
+td,th{border:1px solid #ccc;padding:.2em .5em;text-align:left;vertical-align:top}
+th{background:#f4f6f7} .num{text-align:right;font-family:monospace}
+.ok{color:#1e8449;font-weight:bold} .bad{color:#c0392b;font-weight:bold}
+figure{margin:1em 0} figcaption{font-size:.85em;color:#555}
+img{max-width:100%;border:1px solid #eee} .diagram{overflow:auto;max-height:900px}
+.diagram img{max-width:none}
+
+pre{background:#f8f9f9;padding:.6em;white-space:pre-wrap;font-size:.85em}
+"""
+
+
+def _img(data: bytes, mime: str, alt: str) -> str:
+    import base64
+    return (f'<img alt="{html.escape(alt)}" src="data:{mime};base64,'
+            f'{base64.b64encode(data).decode("ascii")}">')
+
+
+def _value(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, list):
+        text = "[" + ", ".join(_value(x) for x in v) + "]"
+        return text if len(text) <= 300 else text[:300] + " …"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
+    return "" if v is None else str(v)
+
+
+def _table(rows: list, columns: list | None = None) -> str:
+    if not rows:
+        return "<p>(none)</p>"
+    columns = columns or list(dict.fromkeys(c for r in rows for c in r))
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in columns)
+    body = []
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c)
+            cls = ' class="num"' if isinstance(v, (int, float)) and not isinstance(v, bool) else ""
+            cells.append(f"<td{cls}>{html.escape(_value(v))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def _pairs(d: dict) -> str:
+    return _table([{"name": k, "value": v} for k, v in (d or {}).items()], ["name", "value"])
+
+
+def _diagram_section(summary: dict) -> list:
+    """The "Diagram" heading, the picture of ``summary['diagram']`` and any note about it."""
+    svg, note = diagram_picture(summary)
+    out = ["<h2>Diagram</h2>"]
+    if svg is not None:
+        out.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}</div>')
+    if note:
+        out.append(f"<p>{html.escape(note)}</p>")
+    return out
+
+
+def diagram_picture(summary: dict) -> tuple:
+    """(SVG bytes or None, note) of the run's diagram, with the parameters as run."""
+    import shutil
+    path = summary.get("diagram")
+    if not path or not os.path.isfile(path):
+        return None, f"the diagram file {path} is not here; no picture"
+    from fwdstep.structure.compiler import load_diagram
+    from fwdstep.views.drawing import diagram_dot, layered_bytes, picture_for, render_dot
+    from fwdstep.core.errors import FwdstepError
+    params = summary.get("parameters")
+    try:
+        try:
+            d = load_diagram(path, params if isinstance(params, dict) else None)
+        except FwdstepError:
+            d = load_diagram(path)
+        if shutil.which("dot"):
+            return render_dot(diagram_dot(picture_for(d)), "svg"), ""
+        nested = any("/" in b.name for b in d.blocks)     # as fwdstep graph's fallback
+        return (layered_bytes(picture_for(d, 0 if nested else None), "svg"),
+                "drawn without graphviz (install graphviz for a better layout)"
+                + ("; subsystems as boxes" if nested else ""))
+    except FwdstepError as exc:
+        return None, f"no picture: {exc}"
+
+
+def report_html(run_dir: str) -> str:
+    """The self-contained page of a run (or sweep) directory: every image inlined."""
+    import json
+    from fwdstep.core.errors import OutputError
+    from fwdstep.results.result import SUMMARY_FILE
+    summ = os.path.join(run_dir, SUMMARY_FILE)
+    sweep_csv = os.path.join(run_dir, "sweep.csv")
+    if not os.path.isfile(summ) and not os.path.isfile(sweep_csv):
+        raise OutputError(f"{run_dir} holds no saved run or sweep (no summary.json or sweep.csv)")
+    parts = []
+    title = os.path.basename(os.path.normpath(run_dir))
+    if os.path.isfile(summ):
+        from fwdstep.results.result import load_result
+        r = load_result(run_dir)
+        s = r.stored
+        status_cls = "ok" if s.get("status") == "ok" else "bad"
+        title = f"{os.path.basename(str(s.get('diagram') or title))}"
+        parts.append(f"<h1>{html.escape(title)}</h1>")
+        if s.get("title"):
+            parts.append(f"<p>{html.escape(s['title'])}</p>")
+        parts.append(f'<p>Status: <span class="{status_cls}">{html.escape(str(s.get("status")))}'
+                     f"</span>" + (f" — {html.escape(str(s.get('message')))}"
+                                   if s.get("message") else "") + "</p>")
+        facts = {"diagram": s.get("diagram"), "t reached [s]": s.get("t_reached"),
+                 "steps": s.get("steps"), "variants": s.get("batch"),
+                 "wall time [s]": s.get("wall_time_s"), "run directory": run_dir}
+        parts.append(_pairs(facts))
+        parts.extend(_diagram_section(s))
+        parts.append("<h2>Parameters as run</h2>")
+        params = s.get("parameters")
+        if isinstance(params, list):
+            parts.append(_table(params))
+        else:
+            parts.append(_pairs(params or {}))
+        parts.append("<h2>Solver settings</h2>" + _pairs(s.get("simulation") or {}))
+        parts.append("<h2>Metrics</h2>")
+        m = s.get("metrics")
+        parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
+        parts.append("<h2>Figures</h2>")
+        parts += _figures(r, run_dir)
+        parts.append("<h2>Signals recorded</h2>")
+        parts.append(_table([{"signal": k, "shape": v} for k, v in
+                             (s.get("signals") or {}).items()], ["signal", "shape"]))
+    if os.path.isfile(sweep_csv):
+        import csv
+        with open(sweep_csv, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        if not parts:
+            parts.append(f"<h1>Sweep {html.escape(title)}</h1>")
+        counts: dict = {}
+        for row in rows:
+            counts[row.get("status", "?")] = counts.get(row.get("status", "?"), 0) + 1
+        parts.append("<h2>Sweep</h2><p>" + html.escape(", ".join(
+            f"{v} {k}" for k, v in counts.items())) + "</p>")
+        parts.append(_table([_numbers(row) for row in rows]))
+        for name in sorted(os.listdir(run_dir)):
+            if name.endswith(".png") and name.startswith("sweep"):
+                with open(os.path.join(run_dir, name), "rb") as fh:
+                    parts.append(f"<figure>{_img(fh.read(), 'image/png', name)}"
+                                 f"<figcaption>{html.escape(name)}</figcaption></figure>")
+        parts += _sweep_extras(run_dir, os.path.isfile(summ))
+    return ("<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>fwdstep report: {html.escape(title)}</title><style>{_CSS}</style></head>"
+            f"<body>{''.join(parts)}<p style=\"color:#888;font-size:.8em\">{_MARK}</p>"
+            "</body></html>\n")
+
+
+def _numbers(row: dict) -> dict:
+    """A sweep.csv row with its numeric cells as numbers (shown to 6 digits, right-aligned)."""
+    out = {}
+    for k, v in row.items():
+        try:
+            out[k] = int(v) if k in ("variant", "batch") else float(v) if v not in ("", None) \
+                and k not in ("status", "message") else v
+        except (TypeError, ValueError):
+            out[k] = v
+    return out
+
+
+def _sweep_extras(run_dir: str, has_run: bool) -> list:
+    """The diagram of a sweep and the comparison of up to 8 of its saved variants."""
+    from fwdstep.views.compare import MAX_SWEEP_SHOWN, compare, sweep_runs
+    from fwdstep.core.errors import FwdstepError
+    from fwdstep.results.plotting import figure_bytes
+    out = []
+    try:
+        runs = sweep_runs(run_dir)
+    except FwdstepError as exc:
+        return [f"<p>{html.escape(f'no comparison of variants: {exc}')}</p>"]
+    diagram = getattr(runs[0].result, "diagram_file", None)
+    if diagram and not has_run:
+        out.extend(_diagram_section({"diagram": diagram}))
+    picked = runs if len(runs) <= MAX_SWEEP_SHOWN else [
+        runs[int(k)] for k in np.unique(np.linspace(0, len(runs) - 1, MAX_SWEEP_SHOWN)
+                                        .astype(int))]
+    if len(picked) >= 2:
+        c = compare([r.result for r in picked], labels=[r.label for r in picked])
+        out.append(f"<h2>Variants compared</h2><figure>"
+                   f"{_img(figure_bytes(c.figure, 'png'), 'image/png', 'variants compared')}"
+                   f"<figcaption>{len(picked)} of {len(runs)} saved variants, differences "
+                   f"against {html.escape(picked[0].label)}</figcaption></figure>")
+    return out
+
+
+def _figures(result, run_dir: str) -> list:
+    """Each figure of the run: its PNG in the directory if fwdstep wrote one, else drawn now."""
+    from fwdstep.results.plotting import figure_bytes, result_figures
+    from fwdstep.results.outputs import owned_files
+    ours = owned_files(run_dir)
+    out = []
+    drawn = None
+    for name in (getattr(result, "figure_panels", None) or {}):
+        fname = f"{name}.png"
+        if fname in ours:
+            with open(os.path.join(run_dir, fname), "rb") as fh:
+                data = fh.read()
+        else:
+            if drawn is None:
+                drawn = result_figures(result)
+            data = figure_bytes(drawn[name], "png")
+        out.append(f"<figure>{_img(data, 'image/png', name)}"
+                   f"<figcaption>{html.escape(name)}</figcaption></figure>")
+    return out or ["<p>(the diagram names no figures)</p>"]
+
+
+def write_report(run_dir: str, output: str | None = None) -> str:
+    """Write report.html (into ``run_dir`` by default, through fwdstep.results.outputs); its path."""
+    from fwdstep.results.outputs import OutputDir
+    page = report_html(run_dir)
+    if output is None:
+        with OutputDir(run_dir, force=True, expected=[REPORT_FILE]) as out:
+            with open(os.path.join(out.dir, REPORT_FILE), "w", encoding="utf-8") as fh:
+                fh.write(page)
+            out.commit()
+        return os.path.join(run_dir, REPORT_FILE)
+    from fwdstep.core.errors import OutputError
+    from fwdstep.results.result import atomic_write
+    if os.path.lexists(output):              # only an earlier fwdstep report is replaced
+        ours = False
+        if os.path.isfile(output) and not os.path.islink(output):
+            with open(output, "rb") as fh:
+                ours = _MARK.encode() in fh.read()[-400:]
+        if not ours:
+            raise OutputError(f"refusing to replace {output}: it is not a report fwdstep wrote")
+    os.makedirs(os.path.dirname(os.path.abspath(output)), exist_ok=True)
+    atomic_write(os.path.abspath(output), lambda fh: fh.write(page.encode()), binary=True)
+    return output
+
+
+def cmd_report(run_dir: str, output: str | None = None) -> int:
+    """``fwdstep report RUN_DIR``: exit 0, or 2 with one line on stderr."""
+    import sys
+    from fwdstep.core.errors import FwdstepError, one_line
+    try:
+        path = write_report(run_dir, output)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"fwdstep: cannot write the report: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0
