@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fwdstep.cli import arguments as cli
-from fwdstep.core.registry import load_library
+from fwdstep.structure.library import load_library
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(__file__), ".."))
 THEOREM1 = os.path.join(ROOT, "diagrams", "theorem1.yaml")

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import sys
 
+from fwdstep.core.settings import BACKENDS
+
 
 _DIAGRAM_HELP = "the diagram file (YAML; docs/diagram-format.md)"
 _PLUGIN_HELP = ("a Python file defining more block types (repeatable; docs/writing-blocks.md); "
@@ -39,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="overwrite existing results")
     run.add_argument("--no-plots", action="store_true", help="skip the figures")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress or summary line")
-    run.add_argument("--backend", choices=("numpy", "compiled"), default=None,
+    run.add_argument("--backend", choices=BACKENDS, default=None,
                      help="override simulation.backend (compiled needs numba: fwdstep[fast])")
     run.add_argument("--max-log-memory", default=None, metavar="SIZE",
                      help="largest log kept in memory, e.g. 8GB (default 2GiB); a larger log "
@@ -89,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the batches on this Dask scheduler (tcp://HOST:PORT); needs "
                          "fwdstep[distributed]")
-    sw.add_argument("--backend", choices=("numpy", "compiled"), default=None,
+    sw.add_argument("--backend", choices=BACKENDS, default=None,
                     help="override simulation.backend for every variant; compiled batches run "
                          "their variants in parallel threads (needs numba: fwdstep[fast])")
     sw.add_argument("--max-memory", default=None, metavar="SIZE",
@@ -154,7 +156,7 @@ def _add_results_commands(sub, run) -> None:
 def _results_command(args):
     """Exit code of graph/report/compare, or None for other commands."""
     if args.command == "graph":
-        from fwdstep.views.drawing import cmd_graph
+        from fwdstep.cli.verbs import cmd_graph
         return cmd_graph(args.diagram, args.output, args.set, args.depth, args.engine,
                          args.force, args.tags)
     if args.command == "run" and (args.figure_format or args.report):
@@ -165,14 +167,14 @@ def _results_command(args):
                                 max_log_memory=args.max_log_memory,
                                 log_to_disk=args.log_to_disk)
         if args.report and code != 2:            # partial results get a report too
-            from fwdstep.views.report import cmd_report
+            from fwdstep.cli.verbs import cmd_report
             code = cmd_report(args.outdir or commands.default_outdir(args.diagram)) or code
         return code
     if args.command == "report":
-        from fwdstep.views.report import cmd_report
+        from fwdstep.cli.verbs import cmd_report
         return cmd_report(args.run_dir, args.output)
     if args.command == "compare":
-        from fwdstep.views.compare import cmd_compare
+        from fwdstep.cli.verbs import cmd_compare
         return cmd_compare(args.runs, args.outdir, args.signal, args.figure_format)
     return None
 
@@ -231,7 +233,7 @@ def _main(argv=None) -> int:
     from fwdstep.cli import commands
     try:
         if getattr(args, "plugin", None):        # user-chosen block files, before anything
-            from fwdstep.core.registry import load_plugins
+            from fwdstep.structure.library import load_plugins
             load_plugins(args.plugin)
         code = _results_command(args)
         if code is not None:
@@ -247,10 +249,10 @@ def _main(argv=None) -> int:
         if args.command == "blocks":
             return commands.cmd_blocks(args.name)
         if args.command == "schema":
-            from fwdstep.structure.schema import cmd_schema
+            from fwdstep.cli.verbs import cmd_schema
             return cmd_schema(args.output)
         if args.command == "sweep":
-            from fwdstep.sweeps.sweep import cmd_sweep
+            from fwdstep.cli.verbs import cmd_sweep
             return cmd_sweep(args)
     except KeyboardInterrupt as exc:
         reason = getattr(exc, "reason", "interrupted by the user")

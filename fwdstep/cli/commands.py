@@ -165,7 +165,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
 
 
 def cmd_blocks(name: str | None = None) -> int:
-    from fwdstep.core.registry import load_library
+    from fwdstep.structure.library import load_library
     reg = load_library()
     if name is None:
         for tname in sorted(reg):
@@ -183,7 +183,7 @@ def cmd_blocks(name: str | None = None) -> int:
             print(f"{'':22s}   parameters: {params or '-'}")
         return EXIT_OK
     if name not in reg:
-        from fwdstep.core.registry import lookup
+        from fwdstep.structure.library import lookup
         try:
             lookup(name)
         except DiagramError as exc:

@@ -61,13 +61,14 @@ import numpy as np
 from numba import njit
 
 from fwdstep.compiled import compiled_cache
+from fwdstep.compiled import scalarize as sz
 
 from fwdstep.compiled import compiled_ops
 
 from fwdstep.core import kernelops
 from fwdstep.core.errors import ConfigError
 from fwdstep.core.linear import plan_fusion
-from fwdstep.run.solvers import TABLEAUX, step_plan
+from fwdstep.core.solvers import TABLEAUX, step_plan
 
 #: Steps per call of the compiled loop (Ctrl-C and progress are handled between calls).
 CHUNK = 2000
@@ -93,7 +94,7 @@ def jit_kernel(fn):
         return _jitted[key]
     files = {_function_digest(fn)}
     g = dict(fn.__globals__)
-    for name in _global_names(fn.__code__):
+    for name in sz.global_names(fn.__code__):
         value = g.get(name)
         if value is kernelops:
             g[name] = _OpsNamespace()
@@ -166,14 +167,6 @@ def seal_kernels() -> None:
         compiled_cache.seal_folder(folder)
 
 
-def _global_names(code) -> set:
-    names = set(code.co_names)
-    for const in code.co_consts:
-        if isinstance(const, types.CodeType):
-            names |= _global_names(const)
-    return names
-
-
 def kernel(module: str, qualname: str):
     """The jitted kernel ``module.qualname`` (used by the generated module)."""
     mod = sys.modules.get(module) or importlib.import_module(module)
@@ -187,7 +180,7 @@ def _function_digest(fn) -> str:
     h = hashlib.sha256()
     _hash_code(h, fn.__code__)
     h.update(repr(fn.__defaults__).encode())
-    for name in sorted(_global_names(fn.__code__)):
+    for name in sorted(sz.global_names(fn.__code__)):
         value = fn.__globals__.get(name, _MISSING)
         if isinstance(value, (types.FunctionType, types.ModuleType)) or hasattr(
                 value, "py_func"):
@@ -236,7 +229,7 @@ def _dispatcher_digests(fn, seen=None) -> set:
         return set()
     seen.add(fn)
     out = {_function_digest(fn)}
-    for name in _global_names(fn.__code__):
+    for name in sz.global_names(fn.__code__):
         value = fn.__globals__.get(name)
         value = getattr(value, "py_func", value)
         if isinstance(value, types.FunctionType):
@@ -530,7 +523,6 @@ class _ScalarStage:
     variants, columns) whose slices are the logs."""
 
     def __init__(self, d, shapes, ops, fused, consts, logs, unlogged, n_stages):
-        from fwdstep.compiled import scalarize as sz
         self.columns: list = []         # the values of W's columns over the variants
         self._by_values: dict = {}
         tr = self.tr = sz.Trace()
@@ -672,7 +664,6 @@ class _ScalarStage:
         (so 0 * a and 1 * a fold away), and entries equal to each other in every variant
         are one leaf (a Sine's frequency repeated for each derivative is one sin).  Another
         pattern writes other code, hence another cached stage."""
-        from fwdstep.compiled import scalarize as sz
         values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
         first = float(values[0])
         if first in (0.0, 1.0, -1.0) and np.all(values == first):

@@ -625,8 +625,7 @@ class Rebinder:
         new = types.FunctionType(fn.__code__, g, fn.__name__, fn.__defaults__,
                                  fn.__closure__)
         self.done[fn] = new
-        from fwdstep.compiled.backend_numba import _global_names      # (the names jit_kernel rebinds)
-        for name in _global_names(fn.__code__):
+        for name in global_names(fn.__code__):
             if name in g:
                 g[name] = self.value(g[name])
         g["float"] = _float
@@ -645,3 +644,13 @@ def run_traced(rebinder: Rebinder, fn, *args):
     except (TypeError, ValueError, AttributeError, IndexError, ZeroDivisionError,
             OverflowError, NotImplementedError, RecursionError) as exc:
         raise Untraceable(f"{type(exc).__name__}: {exc}") from None
+
+
+def global_names(code) -> set:
+    """The global names a function's code (and its nested functions') reads: the names
+    jit_kernel rebinds and the tracer replaces."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= global_names(const)
+    return names

@@ -1,33 +1,17 @@
 """The explicit registry mapping YAML ``type:`` names to block classes.
 
-Library modules register their classes with ``@register``; ``blocks/__init__.py`` imports
-the library modules explicitly (no scanning, no ``eval``).  More blocks come only from what
-the *user who runs fwdstep* chose (docs/writing-blocks.md) — never from a diagram file:
-
-* installed packages advertising an entry point in the group ``fwdstep.blocks`` (a module
-  whose import registers blocks, or a Block class), loaded with the library;
-* Python files named with ``--plugin FILE.py`` or ``load_diagram(..., plugins=[...])``
-  (``load_plugins``); they are also recorded in ``$FWDSTEP_PLUGINS`` so that the worker
-  processes of a sweep load the same files.
+Library modules register their classes with ``@register``; this module only holds the
+mapping.  Filling it -- the shipped library (``blocks/``), installed entry points and plugin
+files -- is ``fwdstep.structure.library``'s work, one layer up, so the blocks depend on the
+registry and never the other way round.
 """
 from __future__ import annotations
 
-import difflib
-import hashlib
-import importlib.util
-import os
 import sys
 
-from fwdstep.core.errors import ConfigError, UnknownBlockTypeError
+from fwdstep.core.errors import ConfigError
 
 REGISTRY: dict[str, type] = {}
-#: entry-point group of installed block packages
-ENTRY_POINT_GROUP = "fwdstep.blocks"
-#: environment variable listing plugin files (os.pathsep-separated), inherited by workers
-PLUGINS_ENV = "FWDSTEP_PLUGINS"
-
-_plugin_files: dict = {}          # absolute path -> module
-_library_loaded = False
 
 
 def origin(cls) -> str:
@@ -48,98 +32,3 @@ def register(cls):
     cls.type_name = name
     REGISTRY[name] = cls
     return cls
-
-
-def load_library() -> dict[str, type]:
-    """The registry with the library, installed entry points and ``$FWDSTEP_PLUGINS``."""
-    global _library_loaded
-    import fwdstep.blocks  # noqa: F401  (importing registers every library block)
-    if not _library_loaded:
-        _library_loaded = True
-        _load_entry_points()
-        env = os.environ.get(PLUGINS_ENV, "")
-        files = [f for f in env.split(os.pathsep) if f]
-        if files:
-            load_plugins(files)
-    return REGISTRY
-
-
-def _load_entry_points() -> None:
-    from importlib.metadata import entry_points
-    from fwdstep.core.block import Block
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            obj = ep.load()
-        except ConfigError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - reported in one line, naming the plugin
-            raise ConfigError(f"block plugin '{ep.name}' ({ep.value}, entry point "
-                              f"{ENTRY_POINT_GROUP}) failed to load: "
-                              f"{type(exc).__name__}: {exc}") from None
-        if isinstance(obj, type) and issubclass(obj, Block) and \
-                REGISTRY.get(obj.__name__) is not obj:
-            register(obj)
-
-
-def load_plugins(paths) -> list:
-    """Import block plugin files (each once per process); the modules.  A file that is
-    missing, not a regular ``.py`` file, or fails to import is refused in one line."""
-    load_library()
-    modules = []
-    for path in paths:
-        modules.append(_load_file(str(path)))
-    known = [f for f in os.environ.get(PLUGINS_ENV, "").split(os.pathsep) if f]
-    for path in _plugin_files:
-        if path not in known:
-            known.append(path)
-    os.environ[PLUGINS_ENV] = os.pathsep.join(known)
-    return modules
-
-
-def _load_file(path: str):
-    full = os.path.realpath(path)
-    if full in _plugin_files:
-        return _plugin_files[full]
-    if not os.path.isfile(full):
-        raise ConfigError(f"plugin '{path}' is not a file")
-    if not full.endswith(".py"):
-        raise ConfigError(f"plugin '{path}' must be a Python file ending in .py")
-    stem = os.path.splitext(os.path.basename(full))[0]
-    tag = hashlib.sha256(full.encode()).hexdigest()[:10]
-    name = f"fwdstep_plugin_{''.join(c if c.isalnum() else '_' for c in stem)}_{tag}"
-    spec = importlib.util.spec_from_file_location(name, full)
-    module = importlib.util.module_from_spec(spec)
-    module.__fwdstep_plugin__ = path
-    sys.modules[name] = module
-    _plugin_files[full] = module
-    try:
-        spec.loader.exec_module(module)
-    except ConfigError as exc:
-        del sys.modules[name], _plugin_files[full]
-        raise ConfigError(f"plugin '{path}': {exc.message}") from None
-    except BaseException as exc:  # noqa: BLE001 - one line naming the file
-        del sys.modules[name], _plugin_files[full]
-        if isinstance(exc, KeyboardInterrupt):
-            raise
-        line = ""
-        tb = exc.__traceback__
-        while tb is not None:
-            if tb.tb_frame.f_code.co_filename == full:
-                line = f":{tb.tb_lineno}"
-            tb = tb.tb_next
-        raise ConfigError(f"plugin '{path}{line}' failed to load: "
-                          f"{type(exc).__name__}: {exc}") from None
-    return module
-
-
-def lookup(type_name: str):
-    reg = load_library()
-    if type_name in reg:
-        return reg[type_name]
-    close = difflib.get_close_matches(str(type_name), list(reg), n=1, cutoff=0.5)
-    if not close:
-        lowered = {k.lower(): k for k in reg}
-        if str(type_name).lower() in lowered:
-            close = [lowered[str(type_name).lower()]]
-    hint = f"; did you mean '{close[0]}'?" if close else "; run 'fwdstep blocks' for the list"
-    raise UnknownBlockTypeError(f"unknown block type '{type_name}'{hint}")

@@ -34,7 +34,7 @@ def _xarray():
 
 def sweep_dataset(result):
     """The Dataset of a ``SweepResult`` (see the module docstring)."""
-    from fwdstep.sweeps.sweep import METRICS, _text
+    from fwdstep.results.sweep_format import METRICS, cell_text as _text
     xr = _xarray()
     pieces = []
     for part in result.iter_parts():
@@ -89,7 +89,7 @@ def load_sweep(outdir: str):
     """(table, dataset) of a sweep written to ``outdir``: the CSV as a pandas DataFrame and
     ``sweep.nc`` as an xarray Dataset (None when the sweep kept no signals)."""
     import pandas as pd
-    from fwdstep.sweeps.sweep import CSV_FILE, DATASET_FILE
+    from fwdstep.results.sweep_format import CSV_FILE, DATASET_FILE
     table = pd.read_csv(os.path.join(outdir, CSV_FILE), index_col="variant")
     path = os.path.join(outdir, DATASET_FILE)
     dataset = _xarray().load_dataset(path) if os.path.exists(path) else None

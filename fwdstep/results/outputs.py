@@ -41,7 +41,7 @@ What it promises:
 
 A writer that must put files in place while it is still running (a sweep keeping finished
 variants for ``--resume``) can hold ``OutputDir.lock_only(outdir)`` and write each file with
-``fwdstep.results.result.atomic_write`` into the directory itself.
+``fwdstep.core.files.atomic_write`` into the directory itself.
 """
 from __future__ import annotations
 

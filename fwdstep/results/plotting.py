@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fwdstep.core.errors import OutputError
-from fwdstep.results.result import Result, atomic_write, safe_path
+from fwdstep.core.files import atomic_write, safe_path
 
 FORMATS = ("png", "pdf", "svg")
 WIDTH = 8.0          # inches; a figure fits a page or a slide at 100%

@@ -1,6 +1,7 @@
 """Simulation results: recorded signals, summary metrics, and safe writing to disk."""
 from __future__ import annotations
 
+import html
 import json
 import os
 import tempfile
@@ -8,6 +9,7 @@ import tempfile
 import numpy as np
 
 from fwdstep.core.errors import OutputError, printable
+from fwdstep.core.files import atomic_write, safe_path  # noqa: F401  (re-exported for readers of results)
 
 RESULT_FILE = "result.npz"
 SUMMARY_FILE = "summary.json"
@@ -147,8 +149,18 @@ class Result:
         return result_figures(self, variants)
 
     def _repr_html_(self) -> str:
-        from fwdstep.views.report import result_summary_html
-        return result_summary_html(self)
+        """A short summary for notebooks: status, time reached, metrics, signals."""
+        m = self.metrics()
+        rows = [("status", self.status + (f" — {self.message}" if self.message else "")),
+                ("t reached", f"{self.t[-1]:g} s" if len(self.t) else "nothing recorded"),
+                ("steps", str(self.steps)), ("variants", str(self.batch))]
+        if isinstance(m, dict):
+            rows += [(k.replace("_", " "), f"{v:.3e}" if isinstance(v, float) else str(v))
+                     for k, v in m.items()]
+        rows.append(("signals", ", ".join(self.names)))
+        body = "".join(f"<tr><th style='text-align:left'>{html.escape(k)}</th>"
+                       f"<td style='text-align:left'>{html.escape(v)}</td></tr>" for k, v in rows)
+        return f"<div><b>fwdstep Result</b><table>{body}</table></div>"
 
     # ------------------------------------------------------------------ labelled data
     def to_xarray(self):
@@ -284,72 +296,6 @@ def _scaled_norm(a: np.ndarray, axis: int):
     norm = np.sqrt(np.sum((a / safe) ** 2, axis=axis, keepdims=True)) * safe
     norm = np.where(np.isfinite(scale), norm, scale)     # inf and NaN pass through
     return np.squeeze(norm, axis=axis)
-
-
-def safe_path(outdir: str, name: str) -> str:
-    """``outdir/name``, refusing any name that would leave ``outdir``."""
-    if os.path.basename(name) != name or name in ("", ".", "..") or "\x00" in name:
-        raise OutputError(f"refusing to write '{name}': not a plain file name inside {outdir}")
-    if not name.isprintable():
-        raise OutputError(f"refusing to write '{printable(name)}': control characters in a file "
-                          "name")
-    base = os.path.realpath(outdir)
-    path = os.path.join(base, name)
-    if os.path.islink(path):           # never written through: atomic_write would follow it
-        raise OutputError(f"refusing to write '{name}': it is a symbolic link in {outdir}")
-    return path
-
-
-def atomic_write(path: str, write, binary: bool = False, commit: bool = True):
-    """Write to a temporary file in the same directory, then rename it over ``path``.
-
-    ``path`` is always either the old file or the complete new one, never a truncated file,
-    and no temporary file is left behind.  With ``commit=False`` the rename is deferred:
-    the return value is a context manager yielding a function that performs it (the
-    temporary file is removed if the block is left without calling it)."""
-    directory = os.path.dirname(path)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
-    try:
-        os.fchmod(fd, 0o666 & ~_umask())          # as open() would create it, not 0600
-        with os.fdopen(fd, "wb" if binary else "w") as fh:
-            write(fh)
-        if commit:
-            os.replace(tmp, path)
-            return None
-    except BaseException:
-        _unlink(tmp)
-        raise
-    return _Deferred(tmp, path)
-
-
-class _Deferred:
-    def __init__(self, tmp: str, path: str):
-        self.tmp, self.path, self.done = tmp, path, False
-
-    def __enter__(self):
-        return self.commit
-
-    def commit(self) -> None:
-        os.replace(self.tmp, self.path)
-        self.done = True
-
-    def __exit__(self, *exc) -> bool:
-        if not self.done:
-            _unlink(self.tmp)
-        return False
-
-
-def _unlink(path: str) -> None:
-    try:
-        os.unlink(path)
-    except OSError:
-        pass
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _jsonable(obj):

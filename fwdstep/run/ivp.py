@@ -28,7 +28,9 @@ from fwdstep.structure.compiler import CompiledDiagram
 from fwdstep.core.errors import BlockRuntimeError, SimulationError
 from fwdstep.run.events import apply_updates, plan_events
 from fwdstep.results.result import Result
-from fwdstep.run.solvers import IVP_METHODS
+from fwdstep.core.solvers import IVP_METHODS
+from fwdstep.run.evaluate import _block_error, initial_state
+from fwdstep.run.outcome import SimulationInterrupted, _divergence_message, _finish
 
 #: tolerances when a diagram gives none
 DEFAULT_RTOL = 1e-8
@@ -42,8 +44,6 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
 
     from fwdstep.run import finite
     from fwdstep.run.program import build_program
-    from fwdstep.run.simulate import (SimulationInterrupted, _block_error, _divergence_message, _finish,
-                           initial_state)
 
     cfg = d.spec.simulation
     method = IVP_METHODS[cfg.solver]

@@ -34,7 +34,7 @@ import numpy as np
 
 from fwdstep.core.block import Block
 from fwdstep.core.linear import FusionPlan, LinearGroup, plan_fusion
-from fwdstep.run.solvers import TABLEAUX, step_plan
+from fwdstep.core.solvers import TABLEAUX, step_plan
 
 
 _F8 = np.dtype(np.float64)

@@ -33,6 +33,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from fwdstep.core.errors import BlockRuntimeError
+from fwdstep.run.evaluate import _block_error          # the NumPy path's message
 
 _programs: dict = {}
 _handles = itertools.count(1)
@@ -143,7 +144,6 @@ def _failed(entry, blk, exc, t, u, v) -> None:
     if isinstance(exc, _Mismatch):
         error = BlockRuntimeError(str(exc), time=t, block=blk.name)
     elif isinstance(exc, Exception):
-        from fwdstep.run.simulate import _block_error          # the NumPy path's message
         error = _block_error(SimpleNamespace(block=blk), exc, t, u)
     if error is not exc:
         if entry.batch > 1:

@@ -365,7 +365,7 @@ def load_diagram(path: str, overrides: dict | None = None,
     (numbers, lists or expression strings) that replace the file's before anything is built.
     ``plugins``: Python files defining more blocks (docs/writing-blocks.md), imported first."""
     if plugins:
-        from fwdstep.core.registry import load_plugins
+        from fwdstep.structure.library import load_plugins
         load_plugins(plugins)
     return compile_spec(load_spec(path, overrides))
 

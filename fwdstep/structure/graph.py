@@ -13,7 +13,7 @@ import networkx as nx
 
 from fwdstep.core.block import Block, shape_str
 from fwdstep.core.errors import AlgebraicLoopError, DiagramError, ParameterError, ShapeError, WiringError
-from fwdstep.structure.spec import DiagramSpec
+from fwdstep.structure.model import DiagramSpec
 
 
 @dataclass

@@ -17,12 +17,12 @@ each of its inputs (named ``ctrl/sample_<port>``) and one on each of its outputs
 from __future__ import annotations
 
 from fwdstep.core.errors import ConfigError, DiagramError
-from fwdstep.core.registry import lookup
+from fwdstep.structure.library import lookup
+from fwdstep.structure.model import BlockEntry, Connection, _line, evaluate_value
 
 
 def sample_subsystem(level, name: str, body, file: str, line) -> None:
     """Insert the holds of subsystem ``name`` (already expanded into ``level``)."""
-    from fwdstep.structure.spec import BlockEntry, Connection, _line, evaluate_value
 
     full = level.full(name)
     values = {}

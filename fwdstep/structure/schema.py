@@ -13,7 +13,8 @@ from __future__ import annotations
 import json
 import sys
 
-from fwdstep.structure.spec import SIMULATION_KEYS, SOLVER_NAMES, SUBSYSTEM_KEYS, TOP_LEVEL_KEYS
+from fwdstep.core.settings import BACKENDS, SIMULATION_KEYS, SOLVER_NAMES
+from fwdstep.structure.spec import SUBSYSTEM_KEYS, TOP_LEVEL_KEYS
 
 SCHEMA_ID = "https://fwdstep.invalid/diagram.schema.json"
 NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
@@ -69,7 +70,7 @@ def block_schema(cls) -> dict:
 
 def diagram_schema() -> dict:
     """The schema of a diagram file, built from the registry of block types."""
-    from fwdstep.core.registry import load_library
+    from fwdstep.structure.library import load_library
     registry = load_library()
     types = sorted(registry)
     definitions = {f"block.{name}": block_schema(registry[name]) for name in types}
@@ -108,7 +109,7 @@ def diagram_schema() -> dict:
                        "scale": {"enum": ["linear", "log"]}}}]}
     simulation = {key: NUMBER for key in SIMULATION_KEYS}
     simulation["solver"] = {"enum": list(SOLVER_NAMES)}
-    simulation["backend"] = {"enum": ["numpy", "compiled"]}
+    simulation["backend"] = {"enum": list(BACKENDS)}
     properties = {
         "description": {"type": "string"},
         "parameters": {"type": "object", "propertyNames": {"pattern": NAME},
@@ -150,15 +151,3 @@ def schema_text() -> str:
     return json.dumps(diagram_schema(), indent=1, sort_keys=False) + "\n"
 
 
-def cmd_schema(output: str | None = None) -> int:
-    text = schema_text()
-    if output is None:
-        sys.stdout.write(text)
-        return 0
-    try:
-        with open(output, "w", encoding="utf-8") as fh:
-            fh.write(text)
-    except OSError as exc:
-        print(f"fwdstep: cannot write {output}: {exc.strerror}", file=sys.stderr)
-        return 2
-    return 0

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from fwdstep.core.errors import DiagramError
+from fwdstep.structure.graph import _instantiate_one
 
 
 def _open(entry) -> list:
@@ -24,7 +25,6 @@ def _open(entry) -> list:
 
 def infer_shapes(spec) -> None:
     """Fill ``entry.params`` of ``spec.blocks`` with the shapes the connections fix."""
-    from fwdstep.structure.graph import _instantiate_one
     entries = {e.name: e for e in spec.blocks}
     pending = {e.name for e in spec.blocks if _open(e)}
     if not pending:

@@ -30,15 +30,18 @@ import numpy as np
 from fwdstep.core.errors import (ConfigError, DiagramError, ExpressionError, ParameterError, WiringError,
                      YamlError)
 from fwdstep.core.expressions import MAX_ARRAY_SIZE, evaluate, names_in
-from fwdstep.core.registry import lookup
+from fwdstep.structure.library import lookup
+from fwdstep.core.settings import BACKENDS, SIMULATION_KEYS, SOLVER_NAMES, SimulationConfig
+from fwdstep.structure.sampled import sample_subsystem
+from fwdstep.structure.shapes import infer_shapes
+from fwdstep.structure.model import (BlockEntry, Connection, DiagramSpec, _line, evaluate_ragged,
+                                     evaluate_value, kind_of)
 from fwdstep.core.search import SearchPath, check_regular_file
 from fwdstep.core.yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
 
 TOP_LEVEL_KEYS = ("description", "parameters", "blocks", "connections", "ports", "simulation",
                   "log", "plots", "metrics")
-SIMULATION_KEYS = ("t_final", "step", "solver", "log_every", "bound", "backend", "rtol", "atol")
 SUBSYSTEM_KEYS = ("type", "file", "parameters", "sample_period", "sample_offset")
-SOLVER_NAMES = ("euler", "heun", "rk4", "dop853", "radau", "lsoda")   # fwdstep.run.solvers
 MAX_STEPS = 50_000_000
 MAX_SUBSYSTEM_DEPTH = 16
 MAX_BLOCKS = 10_000                     # blocks after subsystem expansion
@@ -47,62 +50,6 @@ MAX_PARAMETER_SECONDS = 30              # time spent evaluating parameters
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)+$")   # plant.arm.q0
 _FIGURE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_-]{0,63}$")
-
-
-@dataclass
-class BlockEntry:
-    name: str
-    type_name: str
-    cls: type
-    params: dict
-    file: str
-    line: int | None
-    key_lines: dict = field(default_factory=dict)
-
-
-@dataclass
-class Connection:
-    src: tuple
-    dst: tuple
-    file: str
-    line: int | None
-    text: str
-
-
-@dataclass
-class SimulationConfig:
-    t_final: float = 10.0
-    step: float = 1e-3
-    solver: str = "rk4"
-    log_every: int = 1
-    bound: float = 1e8
-    backend: str = "numpy"
-    rtol: float = 1e-8           # dop853 / radau / lsoda only (fwdstep.run.ivp)
-    atol: float = 1e-10
-    defaulted: tuple = ()       # t_final/step the diagram did not give (the run's header says)
-    given: bool = True          # the diagram has a simulation: section
-
-    @property
-    def n_steps(self) -> int:
-        return int(round(self.t_final / self.step))
-
-
-@dataclass
-class DiagramSpec:
-    file: str
-    description: str
-    parameters: dict
-    blocks: list
-    connections: list
-    simulation: SimulationConfig
-    log: list | None
-    plots: dict
-    metrics: dict
-    aliases: dict
-    lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
-    plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
-    input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
-    signal_info: dict = field(default_factory=dict)   # signal -> {label, unit, components}
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -142,23 +89,6 @@ class Budget:
                 f"is {MAX_PARAMETER_SECONDS} s"))
 
 
-def kind_of(value) -> str:
-    """What a YAML value is, in the words of the diagram format ('a list', 'a number')."""
-    if value is None:
-        return "nothing (null)"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, (int, float)):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, list):
-        return "a list"
-    if isinstance(value, dict):
-        return "a mapping"
-    return f"a {type(value).__name__}"
-
-
 def _mapping(value, what: str, file: str, line: int | None) -> LineDict:
     if value is None:
         out = LineDict()
@@ -168,65 +98,6 @@ def _mapping(value, what: str, file: str, line: int | None) -> LineDict:
         raise ConfigError(f"'{what}' must be a mapping, got {kind_of(value)}", file=file,
                           line=line)
     return value
-
-
-def _line(container, key) -> int | None:
-    if isinstance(container, (LineDict, LineList)):
-        return container.line_of(key)
-    return None
-
-
-def evaluate_value(value: Any, namespace: dict, what: str):
-    """Evaluate a YAML value: strings are expressions, lists are evaluated element-wise."""
-    if isinstance(value, str):
-        return evaluate(value, namespace, what)
-    if isinstance(value, list):
-        items, total = [], 0
-        for v in value:
-            items.append(evaluate_value(v, namespace, what))
-            total += int(np.size(items[-1])) if items[-1] is not None else 1
-            if total > MAX_ARRAY_SIZE:
-                raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
-        for v in items:
-            if v is None or isinstance(v, (bool, np.bool_)):
-                shown = "null (an empty entry)" if v is None else str(v).lower()
-                raise ExpressionError(f"{what}: a list may contain only numbers, not {shown}")
-        try:
-            return np.array(items, dtype=float)
-        except (ValueError, TypeError):
-            raise ExpressionError(f"{what}: the list is not a rectangular array of numbers"
-                                  ) from None
-    if isinstance(value, dict):
-        raise ExpressionError(f"{what} must be a number, a list or an expression, not a "
-                              "mapping ({...} or indented 'key: value' lines)")
-    if isinstance(value, bool) or value is None:
-        return value
-    if isinstance(value, (int, float)):
-        try:
-            number = float(value)
-        except OverflowError:
-            raise ExpressionError(f"{what}: the integer is too large to be a number") from None
-        if not math.isfinite(number):
-            raise ExpressionError(f"{what}: value {value} is not finite")
-        return number
-    return value
-
-
-def evaluate_ragged(value: Any, namespace: dict, what: str):
-    """A list of rows of different lengths -> a matrix padded with zeros at the end of each
-    row (``[[1, 0.5], [2]]`` -> ``[[1, 0.5], [2, 0]]``); anything else as ``evaluate_value``."""
-    if not (isinstance(value, list) and value and all(isinstance(v, list) for v in value)):
-        return evaluate_value(value, namespace, what)
-    rows = [np.atleast_1d(evaluate_value(v, namespace, what)) for v in value]
-    if any(r.ndim != 1 for r in rows):
-        raise ExpressionError(f"{what}: each row must be a list of numbers")
-    width = max(r.size for r in rows)
-    if width * len(rows) > MAX_ARRAY_SIZE:
-        raise ExpressionError(f"{what}: the list has more than {MAX_ARRAY_SIZE} numbers")
-    out = np.zeros((len(rows), width))
-    for i, r in enumerate(rows):
-        out[i, :r.size] = r
-    return out
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -575,7 +446,6 @@ class _Level:
         self.blocks.extend(child.blocks)
         self.connections.extend(child.connections)
         if "sample_period" in body or "sample_offset" in body:   # a sampled controller
-            from fwdstep.structure.sampled import sample_subsystem
             sample_subsystem(self, name, body, file, line)
         self.children[name] = child
         self.local_blocks[name] = "subsystem"
@@ -746,7 +616,7 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
                               f"{', '.join(SOLVER_NAMES)}", file=file, line=_line(raw, "solver"))
         cfg.solver = raw["solver"]
     if "backend" in raw:
-        if raw["backend"] not in ("numpy", "compiled"):
+        if raw["backend"] not in BACKENDS:
             raise ConfigError(f"simulation.backend '{raw['backend']}' is unknown; backends are: "
                               "numpy, compiled", file=file, line=_line(raw, "backend"))
         cfg.backend = raw["backend"]
@@ -960,6 +830,5 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
                        input_ports=level.input_ports, signal_info=signal_info)
     if not errors:
-        from fwdstep.structure.shapes import infer_shapes
         infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
     return spec

@@ -78,17 +78,15 @@ from fwdstep.core.budgets import BudgetError
 from fwdstep.sweeps.distributed import dask_client, local_cores, run_jobs
 from fwdstep.core.errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
                      OutputError)
-from fwdstep.results.result import atomic_write, batch_error_metrics, safe_path
+from fwdstep.results.result import batch_error_metrics
+from fwdstep.core.files import atomic_write, safe_path
 from fwdstep.sweeps.sampling import (MAX_VARIANTS, parse_grid, parse_random, split_values,  # noqa: F401
                        variant_seeds, variant_values)
 from fwdstep.run.simulate import SimulationInterrupted, simulate
 from fwdstep.sweeps.variants import VariantSpecs
+from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE, METRICS,  # noqa: F401
+                                          PARTS_DIR, cell_text as _text)
 
-CSV_FILE = "sweep.csv"
-FIGURE_FILE = "sweep.png"
-DATASET_FILE = "sweep.nc"
-PARTS_DIR = "parts"
-METRICS = ("final_abs_error", "tail_max_abs_error", "rms_error", "max_abs_error")
 #: Largest batch; a group with more variants runs in several batches.
 MAX_BATCH = 512
 #: Default bound on the memory of the batches running at once (bytes).
@@ -264,7 +262,7 @@ def batchable(spec) -> bool:
     NumPy backend (arrays with a batch axis) or the compiled one (``run_batch``: each variant
     on its own row, in parallel).  An adaptive solver would choose one step sequence for the
     whole batch, which is not each variant's own run."""
-    from fwdstep.run.solvers import TABLEAUX
+    from fwdstep.core.solvers import TABLEAUX
     cfg = spec.simulation
     return cfg.solver in TABLEAUX and getattr(cfg, "backend", "numpy") in ("numpy", "compiled")
 
@@ -681,16 +679,6 @@ def _describe(values: dict, names: list) -> str:
     return ", ".join(f"{k}={_text(values[k])}" for k in names if k in values)
 
 
-def _text(value) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return json.dumps(np.asarray(value).tolist())
-    return str(value)
-
-
 # ---------------------------------------------------------------------------- figure
 def _numeric(values: list):
     try:
@@ -776,107 +764,7 @@ def _series(ok: list, others: list) -> dict:
 
 
 # ---------------------------------------------------------------------------- command
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """SIGTERM (a batch system's kill) stops the sweep like Ctrl-C: finished batches kept.
-    (``cli.main`` may have installed such a handler already; then it is left alone.)"""
-    def handler(signum, frame):
-        exc = KeyboardInterrupt()
-        exc.signum = signum
-        raise exc
-    try:
-        if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
-            yield
-            return
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:                   # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
-def cmd_sweep(args) -> int:
-    """``fwdstep sweep``: see the module docstring for the options and exit codes.  One
-    sweep per output directory: it is locked for the whole run (``fwdstep.results.outputs``)."""
-    from fwdstep.results.outputs import OutputDir
-    outdir = args.outdir or os.path.join(
-        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
-    try:
-        with OutputDir.lock_only(outdir, force=True):
-            return _cmd_sweep(args)
-    except OutputError as exc:
-        print(f"fwdstep: {exc}", file=sys.stderr)
-        return 2
-
-
-def _cmd_sweep(args) -> int:
-    from fwdstep.cli.commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK,
-                           _overrides)
-    outdir = args.outdir or os.path.join(
-        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
-    quiet = getattr(args, "quiet", False)
-    resume = getattr(args, "resume", False)
-    try:
-        grid = parse_grid(args.grid)
-        random = parse_random(args.random)
-        overrides = _overrides(args.set)
-        _check_outdir(outdir, args.force or resume)
-        progress = None if quiet else (lambda text: print(f"  {text}", file=sys.stderr,
-                                                          flush=True))
-        with _terminate_as_interrupt():
-            result = run_sweep(
-                args.diagram, grid, random, args.samples, args.seed, overrides,
-                sequential=args.sequential, progress=progress,
-                design=getattr(args, "design", "random"),
-                seed_parameter=getattr(args, "seed_parameter", None),
-                workers=getattr(args, "workers", None),
-                scheduler=getattr(args, "scheduler", None),
-                max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
-                batch_size=getattr(args, "batch_size", None), outdir=outdir, resume=resume,
-                keep_signals=not getattr(args, "no_signals", False),
-                backend=getattr(args, "backend", None))
-    except (DiagramError, OutputError) as exc:
-        print(f"fwdstep: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    except KeyboardInterrupt as exc:     # before any batch ran: nothing to keep
-        print("fwdstep: interrupted", file=sys.stderr)
-        return 128 + int(getattr(exc, "signum", signal.SIGINT))
-    try:
-        written = result.write(outdir, dataset=getattr(args, "netcdf", False))
-    except (OSError, OutputError) as exc:
-        print(f"fwdstep: cannot write results to {outdir}: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    counts = result.counts()
-    if not quiet:
-        summary = ", ".join(f"{n} {status}" for status, n in counts.items())
-        print(f"{len(result.variants)} variants in {len(result.batches)} batch"
-              f"{'es' if len(result.batches) != 1 else ''}: {summary}; "
-              f"{result.wall_time:.2f} s wall")
-        print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
-        if result.interrupted:
-            print(f"interrupted: finished batches are in {os.path.join(outdir, PARTS_DIR)}; "
-                  "run again with --resume to finish the rest")
-    if result.interrupted:
-        return 128 + result.signal_number if result.signal_number else EXIT_INTERRUPTED
-    if counts.get("error"):
-        return EXIT_BLOCK
-    if counts.get("diverged"):
-        return EXIT_DIVERGED
-    return EXIT_OK
-
-
-def _check_outdir(outdir: str, force: bool) -> None:
-    if os.path.exists(outdir) and not os.path.isdir(outdir):
-        raise OutputError(f"output directory {outdir} exists and is not a directory")
-    for name in (CSV_FILE, PARTS_DIR):
-        existing = os.path.join(outdir, name)
-        if os.path.exists(existing) and not force:
-            raise OutputError(f"{existing} already exists; pass --resume to finish that sweep, "
-                              "--force to overwrite it or -o to choose another directory")
-
-
-__all__ = ["run_sweep", "SweepResult", "Variant", "cmd_sweep", "parse_grid", "parse_random",
+__all__ = ["run_sweep", "SweepResult", "Variant", "parse_grid", "parse_random",
            "variant_values", "plan_batches", "settings_key", "parse_size"]

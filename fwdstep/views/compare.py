@@ -105,7 +105,7 @@ def open_run(source, label: str | None = None) -> list:
 
 def is_sweep(path: str) -> bool:
     """A directory written by ``fwdstep sweep`` (sweep.csv and parts/, no result.npz)."""
-    from fwdstep.sweeps.sweep import CSV_FILE as SWEEP_CSV, PARTS_DIR
+    from fwdstep.results.sweep_format import CSV_FILE as SWEEP_CSV, PARTS_DIR
     return (os.path.isdir(os.path.join(path, PARTS_DIR))
             or os.path.isfile(os.path.join(path, SWEEP_CSV))) \
         and not os.path.isfile(os.path.join(path, "result.npz"))
@@ -118,7 +118,7 @@ def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None
     numbers (default: every variant whose signal was saved)."""
     import glob
     import json
-    from fwdstep.sweeps.sweep import METRICS, PARTS_DIR
+    from fwdstep.results.sweep_format import METRICS, PARTS_DIR
     name = label or _short(outdir)
     found: dict = {}
     for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
@@ -315,34 +315,4 @@ def _component(info, shape: tuple, j: int) -> str:
     return info.component(np.unravel_index(j, shape), shape)
 
 
-def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=None,
-                force: bool = True) -> int:
-    """``fwdstep compare``: exit 0, or 2 with one line on stderr."""
-    import sys
-    from fwdstep.core.errors import FwdstepError, one_line
-    try:
-        c = compare(sources, signals or None)
-        outdir = outdir or os.path.join("out", "compare")
-        written = c.save(outdir, tuple(formats or ("png",)), force=force)
-    except FwdstepError as exc:
-        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
-        return 2
-    cols = list(c.table[0])
-    widths = {col: max([len(col), 10] + [len(_fmt(row.get(col))) for row in c.table])
-              for col in cols}
-    print("  ".join(f"{col:>{widths[col]}}" for col in cols))
-    for row in c.table:
-        print("  ".join(f"{_fmt(row.get(col)):>{widths[col]}}" for col in cols))
-    print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
-    return 0
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.3e}"
-    return str(v)
-
-
-__all__ = ["compare", "Comparison", "cmd_compare", "FORMATS"]
+__all__ = ["compare", "Comparison", "FORMATS"]

@@ -652,7 +652,7 @@ def _write(path: str, data: bytes, force: bool = False) -> None:
                           "choose another directory with -o")
     import json
     from fwdstep.results.outputs import _describe
-    from fwdstep.results.result import atomic_write
+    from fwdstep.core.files import atomic_write
     try:
         os.makedirs(directory, exist_ok=True)
         # the directory's lock (as a run holds it), then the picture and the manifest that
@@ -759,20 +759,3 @@ def subsystem_ports(picture: Picture, path: str, diagram) -> None:
                 picture.edges.append((blk, port, "outputs", pname, shape, False))
 
 
-def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None = None,
-              engine: str = "auto", force: bool = False, tags: str = "auto") -> int:
-    """``fwdstep graph DIAGRAM -o FILE.svg``: exit 0, or 2 with one line on stderr."""
-    import sys
-    from fwdstep.core.errors import FwdstepError, one_line
-    from fwdstep.structure.spec import parse_override
-    try:
-        overrides = dict(parse_override(s) for s in sets or [])
-        diagram = diagram_for_drawing(path, overrides)
-        output = output or os.path.join(
-            "out", os.path.splitext(os.path.basename(path))[0], "diagram.svg")
-        used = draw_diagram(diagram, output, depth, engine, force, tags)
-    except FwdstepError as exc:
-        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
-        return 2
-    print(f"wrote {output} ({len(diagram.blocks)} blocks, layout: {used})")
-    return 0

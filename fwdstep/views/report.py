@@ -7,21 +7,6 @@ import os
 import numpy as np
 
 
-def result_summary_html(result) -> str:
-    """A short summary of a Result for notebooks: status, time reached, metrics, signals."""
-    m = result.metrics()
-    rows = [("status", result.status + (f" — {result.message}" if result.message else "")),
-            ("t reached", f"{result.t[-1]:g} s" if len(result.t) else "nothing recorded"),
-            ("steps", str(result.steps)), ("variants", str(result.batch))]
-    if isinstance(m, dict):
-        rows += [(k.replace("_", " "), f"{v:.3e}" if isinstance(v, float) else str(v))
-                 for k, v in m.items()]
-    rows.append(("signals", ", ".join(result.names)))
-    body = "".join(f"<tr><th style='text-align:left'>{html.escape(k)}</th>"
-                   f"<td style='text-align:left'>{html.escape(v)}</td></tr>" for k, v in rows)
-    return f"<div><b>fwdstep Result</b><table>{body}</table></div>"
-
-
 # ---------------------------------------------------------------------------- the report page
 REPORT_FILE = "report.html"
 _MARK = "written by fwdstep report"
@@ -250,7 +235,7 @@ def write_report(run_dir: str, output: str | None = None) -> str:
             out.commit()
         return os.path.join(run_dir, REPORT_FILE)
     from fwdstep.core.errors import OutputError
-    from fwdstep.results.result import atomic_write
+    from fwdstep.core.files import atomic_write
     if os.path.lexists(output):              # only an earlier fwdstep report is replaced
         ours = False
         if os.path.isfile(output) and not os.path.islink(output):
@@ -263,17 +248,3 @@ def write_report(run_dir: str, output: str | None = None) -> str:
     return output
 
 
-def cmd_report(run_dir: str, output: str | None = None) -> int:
-    """``fwdstep report RUN_DIR``: exit 0, or 2 with one line on stderr."""
-    import sys
-    from fwdstep.core.errors import FwdstepError, one_line
-    try:
-        path = write_report(run_dir, output)
-    except FwdstepError as exc:
-        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"fwdstep: cannot write the report: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {path}")
-    return 0

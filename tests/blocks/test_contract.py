@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from fwdstep.core.errors import ParameterError
-from fwdstep.core.registry import load_library
+from fwdstep.structure.library import load_library
 
 REGISTRY = load_library()
 NAMES = sorted(REGISTRY)

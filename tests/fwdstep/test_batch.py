@@ -137,7 +137,7 @@ def test_variants_differing_in_a_flag_are_not_stacked():
     the block declares it in ``stacked_params`` (keeps it in ``p`` per variant)."""
     from fwdstep.core.block import Block, Param
     from fwdstep.structure.compiler import structure_signature
-    from fwdstep.core.registry import load_library
+    from fwdstep.structure.library import load_library
 
     class Switch(Block):
         """Test-only: y = u or y = -u by a choice that is NOT stored in p."""

@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("numba")
 
-from fwdstep import compiled_cache  # noqa: E402
+from fwdstep.compiled import compiled_cache  # noqa: E402
 
 SOURCE = "# fwdstep compiled program (test)\nCACHE = True\nVALUE = {}\n"
 
@@ -199,7 +199,7 @@ class Doubler(Block):
     plugin.write_text(body.replace("FACTOR = 2.0", "FACTOR = 3.0"))
     backend_numba.build_program(d, 5)              # the loaded code is unchanged
     assert len(seen) == 2 and seen[0] == seen[1]
-    fwdstep.core.registry._plugin_files.clear()         # as a new process would: load the new text
+    fwdstep.structure.library._plugin_files.clear()         # as a new process would: load the new text
     d = fwdstep.load_diagram(str(diagram), plugins=[str(plugin)])
     backend_numba.build_program(d, 5)
     changed = [a for a, b in zip(seen[0].splitlines(), seen[2].splitlines()) if a != b]

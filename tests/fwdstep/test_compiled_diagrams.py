@@ -19,7 +19,7 @@ import pytest
 import fwdstep
 from fwdstep.structure.compiler import compile_spec
 from fwdstep.core.errors import ConfigError
-from fwdstep.run.solvers import IVP_METHODS
+from fwdstep.core.solvers import IVP_METHODS
 from fwdstep.structure.spec import load_spec
 
 pytest.importorskip("numba")

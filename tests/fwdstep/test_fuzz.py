@@ -32,7 +32,7 @@ from hypothesis import strategies as st
 from fwdstep.structure.compiler import compile_spec
 from fwdstep.core.errors import FwdstepError
 from fwdstep.structure.graph import instantiate
-from fwdstep.core.registry import load_library
+from fwdstep.structure.library import load_library
 from fwdstep.run.simulate import simulate
 from fwdstep.structure.spec import load_spec
 

@@ -11,7 +11,7 @@ import pytest
 from fwdstep.cli import arguments as cli
 import fwdstep
 from fwdstep.core.errors import ConfigError, OutputError
-from fwdstep.results.result import safe_path
+from fwdstep.core.files import safe_path
 
 DIAGRAM = """\
 blocks:

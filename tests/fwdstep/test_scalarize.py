@@ -10,8 +10,9 @@ import pytest
 pytest.importorskip("numba")             # the tracer runs fwdstep.compiled.compiled_ops' loops
 
 import fwdstep  # noqa: E402
-from fwdstep import scalarize as sz  # noqa: E402
-from fwdstep.core.registry import REGISTRY, load_library  # noqa: E402
+from fwdstep.compiled import scalarize as sz  # noqa: E402
+from fwdstep.core.registry import REGISTRY
+from fwdstep.structure.library import load_library  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

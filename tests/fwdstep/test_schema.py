@@ -10,9 +10,10 @@ from pathlib import Path
 import pytest
 
 from fwdstep.cli import arguments as cli
-from fwdstep.core.registry import load_library
+from fwdstep.structure.library import load_library
 from fwdstep.structure.schema import diagram_schema, schema_text
-from fwdstep.structure.spec import SIMULATION_KEYS, TOP_LEVEL_KEYS
+from fwdstep.core.settings import SIMULATION_KEYS
+from fwdstep.structure.spec import TOP_LEVEL_KEYS
 from fwdstep.core.yamlio import read_yaml_file
 
 jsonschema = pytest.importorskip("jsonschema")
@@ -103,7 +104,8 @@ def test_the_reference_page_names_every_function_setting_section_and_metric():
     import re
     from fwdstep.core.expressions import CONSTANTS, FUNCTIONS
     from fwdstep.results.result import METRIC_DEFINITIONS
-    from fwdstep.structure.spec import SOLVER_NAMES, SUBSYSTEM_KEYS
+    from fwdstep.core.settings import SOLVER_NAMES
+    from fwdstep.structure.spec import SUBSYSTEM_KEYS
     text = (REPO / "docs" / "diagram-format.md").read_text()
     quoted = set(re.findall(r"`([A-Za-z_][A-Za-z0-9_]*)", text))
     named = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", text))

@@ -131,7 +131,7 @@ def test_no_shipped_diagram_writes_a_shape_the_wiring_fixes():
     """Every shape parameter a block can infer is left out of the shipped diagrams (what is
     left: LinearCombination, whose input is (*shape, K), so no port carries its shape)."""
     import re
-    from fwdstep.core.registry import load_library
+    from fwdstep.structure.library import load_library
     registry = load_library()
     found = []
     paths = sorted((REPO / "diagrams").glob("*.yaml")) + sorted((REPO / "diagrams" / "lib")

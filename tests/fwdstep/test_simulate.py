@@ -17,7 +17,7 @@ import fwdstep
 from fwdstep.core.linear import LinearBlock, linear_form_of, plan_fusion
 from fwdstep.run.program import build_program
 from fwdstep.run.simulate import initial_state
-from fwdstep.run.solvers import TABLEAUX, step_plan
+from fwdstep.core.solvers import TABLEAUX, step_plan
 
 LOOP = """
 parameters: {ell: 2, alpha: 4, gamma: 2}

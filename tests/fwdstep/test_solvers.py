@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.run.solvers import TABLEAUX, integrate_ode
+from fwdstep.core.solvers import TABLEAUX, integrate_ode
 from fwdstep.structure.spec import load_spec
 
 OSCILLATOR = """

@@ -1,0 +1,206 @@
+"""The verbs that show or sweep: ``fwdstep sweep``, ``report``, ``graph``, ``compare``, ``schema``.
+
+Each parses nothing (``fwdstep.cli.arguments`` does), calls the library, prints what it wrote
+and turns errors into one line on stderr and an exit code (``fwdstep.cli.commands``)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+
+from fwdstep.cli.commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_INTERRUPTED,
+                                  EXIT_OK, _overrides)
+from fwdstep.core.errors import DiagramError, FwdstepError, OutputError, one_line
+from fwdstep.results.outputs import OutputDir
+from fwdstep.results.sweep_format import CSV_FILE, PARTS_DIR
+from fwdstep.structure.schema import schema_text
+from fwdstep.structure.spec import parse_override
+from fwdstep.sweeps.sweep import DEFAULT_MAX_MEMORY, parse_grid, parse_random, run_sweep
+from fwdstep.views.compare import compare
+from fwdstep.views.drawing import diagram_for_drawing, draw_diagram
+from fwdstep.views.report import write_report
+
+
+# ---------------------------------------------------------------------------- sweep
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """SIGTERM (a batch system's kill) stops the sweep like Ctrl-C: finished batches kept.
+    (``cli.main`` may have installed such a handler already; then it is left alone.)"""
+    def handler(signum, frame):
+        exc = KeyboardInterrupt()
+        exc.signum = signum
+        raise exc
+    try:
+        if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+            yield
+            return
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:                   # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def cmd_sweep(args) -> int:
+    """``fwdstep sweep``: see the module docstring for the options and exit codes.  One
+    sweep per output directory: it is locked for the whole run (``fwdstep.results.outputs``)."""
+    outdir = args.outdir or os.path.join(
+        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
+    try:
+        with OutputDir.lock_only(outdir, force=True):
+            return _cmd_sweep(args)
+    except OutputError as exc:
+        print(f"fwdstep: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_sweep(args) -> int:
+    outdir = args.outdir or os.path.join(
+        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
+    quiet = getattr(args, "quiet", False)
+    resume = getattr(args, "resume", False)
+    try:
+        grid = parse_grid(args.grid)
+        random = parse_random(args.random)
+        overrides = _overrides(args.set)
+        _check_outdir(outdir, args.force or resume)
+        progress = None if quiet else (lambda text: print(f"  {text}", file=sys.stderr,
+                                                          flush=True))
+        with _terminate_as_interrupt():
+            result = run_sweep(
+                args.diagram, grid, random, args.samples, args.seed, overrides,
+                sequential=args.sequential, progress=progress,
+                design=getattr(args, "design", "random"),
+                seed_parameter=getattr(args, "seed_parameter", None),
+                workers=getattr(args, "workers", None),
+                scheduler=getattr(args, "scheduler", None),
+                max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
+                batch_size=getattr(args, "batch_size", None), outdir=outdir, resume=resume,
+                keep_signals=not getattr(args, "no_signals", False),
+                backend=getattr(args, "backend", None))
+    except (DiagramError, OutputError) as exc:
+        print(f"fwdstep: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt as exc:     # before any batch ran: nothing to keep
+        print("fwdstep: interrupted", file=sys.stderr)
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))
+    try:
+        written = result.write(outdir, dataset=getattr(args, "netcdf", False))
+    except (OSError, OutputError) as exc:
+        print(f"fwdstep: cannot write results to {outdir}: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    counts = result.counts()
+    if not quiet:
+        summary = ", ".join(f"{n} {status}" for status, n in counts.items())
+        print(f"{len(result.variants)} variants in {len(result.batches)} batch"
+              f"{'es' if len(result.batches) != 1 else ''}: {summary}; "
+              f"{result.wall_time:.2f} s wall")
+        print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
+        if result.interrupted:
+            print(f"interrupted: finished batches are in {os.path.join(outdir, PARTS_DIR)}; "
+                  "run again with --resume to finish the rest")
+    if result.interrupted:
+        return 128 + result.signal_number if result.signal_number else EXIT_INTERRUPTED
+    if counts.get("error"):
+        return EXIT_BLOCK
+    if counts.get("diverged"):
+        return EXIT_DIVERGED
+    return EXIT_OK
+
+
+def _check_outdir(outdir: str, force: bool) -> None:
+    if os.path.exists(outdir) and not os.path.isdir(outdir):
+        raise OutputError(f"output directory {outdir} exists and is not a directory")
+    for name in (CSV_FILE, PARTS_DIR):
+        existing = os.path.join(outdir, name)
+        if os.path.exists(existing) and not force:
+            raise OutputError(f"{existing} already exists; pass --resume to finish that sweep, "
+                              "--force to overwrite it or -o to choose another directory")
+
+
+
+# ---------------------------------------------------------------------------- report
+def cmd_report(run_dir: str, output: str | None = None) -> int:
+    """``fwdstep report RUN_DIR``: exit 0, or 2 with one line on stderr."""
+    from fwdstep.core.errors import FwdstepError, one_line
+    try:
+        path = write_report(run_dir, output)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"fwdstep: cannot write the report: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0
+
+
+
+# ---------------------------------------------------------------------------- graph
+def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None = None,
+              engine: str = "auto", force: bool = False, tags: str = "auto") -> int:
+    """``fwdstep graph DIAGRAM -o FILE.svg``: exit 0, or 2 with one line on stderr."""
+    from fwdstep.core.errors import FwdstepError, one_line
+    try:
+        overrides = dict(parse_override(s) for s in sets or [])
+        diagram = diagram_for_drawing(path, overrides)
+        output = output or os.path.join(
+            "out", os.path.splitext(os.path.basename(path))[0], "diagram.svg")
+        used = draw_diagram(diagram, output, depth, engine, force, tags)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    print(f"wrote {output} ({len(diagram.blocks)} blocks, layout: {used})")
+    return 0
+
+
+
+# ---------------------------------------------------------------------------- compare
+def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=None,
+                force: bool = True) -> int:
+    """``fwdstep compare``: exit 0, or 2 with one line on stderr."""
+    from fwdstep.core.errors import FwdstepError, one_line
+    try:
+        c = compare(sources, signals or None)
+        outdir = outdir or os.path.join("out", "compare")
+        written = c.save(outdir, tuple(formats or ("png",)), force=force)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    cols = list(c.table[0])
+    widths = {col: max([len(col), 10] + [len(_fmt(row.get(col))) for row in c.table])
+              for col in cols}
+    print("  ".join(f"{col:>{widths[col]}}" for col in cols))
+    for row in c.table:
+        print("  ".join(f"{_fmt(row.get(col)):>{widths[col]}}" for col in cols))
+    print(f"wrote {', '.join(os.path.relpath(p) for p in written)}")
+    return 0
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3e}"
+    return str(v)
+
+
+
+# ---------------------------------------------------------------------------- schema
+def cmd_schema(output: str | None = None) -> int:
+    text = schema_text()
+    if output is None:
+        sys.stdout.write(text)
+        return 0
+    try:
+        with open(output, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    except OSError as exc:
+        print(f"fwdstep: cannot write {output}: {exc.strerror}", file=sys.stderr)
+        return 2
+    return 0
+
