@@ -27,7 +27,7 @@ LIBRARY_PREFIX = "lib/"
 def shipped_library() -> str | None:
     """The folder of the shipped subsystem library (``lib/...`` names), or None: the installed
     package data ``fwdstep/library`` or, in a source checkout, ``diagrams/lib``."""
-    here = os.path.dirname(os.path.abspath(__file__))
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))     # the fwdstep package
     for folder in (os.path.join(here, "library"),
                    os.path.join(os.path.dirname(here), "diagrams", "lib")):
         if os.path.isdir(folder):

@@ -244,7 +244,7 @@ def test_a_kernel_digest_is_the_same_in_another_process():
     import subprocess
     import sys
     from fwdstep.compiled import backend_numba
-    code = ("from fwdstep import backend_numba as b; "
+    code = ("from fwdstep.compiled import backend_numba as b; "
             "print(b._function_digest(b._copy), b._function_digest(b._view1))")
     there = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                            check=True, timeout=300).stdout.strip()

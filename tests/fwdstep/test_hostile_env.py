@@ -270,7 +270,8 @@ def test_ctrl_c_while_importing_fwdstep_in_process(monkeypatch, capsys):
             return None
 
     monkeypatch.delitem(sys.modules, "fwdstep.cli.commands", raising=False)
-    monkeypatch.delattr(fwdstep, "commands", raising=False)
+    import fwdstep.cli
+    monkeypatch.delattr(fwdstep.cli, "commands", raising=False)
     monkeypatch.setattr(sys, "meta_path", [Finder()] + sys.meta_path)
     assert cli.main(["blocks"]) == 130
     assert capsys.readouterr().err == "fwdstep: interrupted by the user\n"
