@@ -6,22 +6,45 @@ Python API::
     d = fwdstep.load_diagram("diagrams/theorem1.yaml", overrides={"ell": 3})
     r = fwdstep.simulate(d)
     r.t, r["err.y"], r.metrics()
-"""
-from fwdstep.structure.compiler import CompiledDiagram, compile_batch, load_diagram
-from fwdstep.core.errors import (AlgebraicLoopError, BlockRuntimeError, ConfigError, DiagramError,
-                     DivergenceError, ExpressionError, FwdstepError, OutputError, ParameterError,
-                     ShapeError, SimulationError, UnknownBlockTypeError, WiringError, YamlError)
-from fwdstep.results.result import Result, load_result
-from fwdstep.run.simulate import SimulationInterrupted, simulate
-from fwdstep.views.compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
-from fwdstep.sweeps.sweep import SweepResult, run_sweep  # noqa: E402
-from fwdstep.results.labelled import load_sweep  # noqa: E402
 
-__all__ = [
-    "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
-    "FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
-    "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
-    "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
-    "SimulationInterrupted", "load_result", "compare", "run_sweep", "SweepResult", "load_sweep",
-]
+The names below are imported on first use, so ``import fwdstep`` (and every command-line
+verb) pays only for the layers it touches; docs/architecture.md shows the layers.
+"""
+import importlib
+
 __version__ = "0.1.0"
+
+#: public name -> the module that defines it
+_PUBLIC = {
+    "load_diagram": "fwdstep.structure.compiler",
+    "compile_batch": "fwdstep.structure.compiler",
+    "CompiledDiagram": "fwdstep.structure.compiler",
+    "simulate": "fwdstep.run.simulate",
+    "SimulationInterrupted": "fwdstep.run.outcome",
+    "Result": "fwdstep.results.result",
+    "load_result": "fwdstep.results.result",
+    "load_sweep": "fwdstep.results.labelled",
+    "compare": "fwdstep.views.compare",
+    "run_sweep": "fwdstep.sweeps.sweep",
+    "SweepResult": "fwdstep.sweeps.sweep",
+}
+_ERRORS = ("FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
+           "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError",
+           "ConfigError", "OutputError", "SimulationError", "DivergenceError",
+           "BlockRuntimeError")
+_PUBLIC.update({name: "fwdstep.core.errors" for name in _ERRORS})
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str):
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'fwdstep' has no attribute '{name}'")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))

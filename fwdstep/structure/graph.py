@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import networkx as nx
+import graphlib
+import heapq
 
 from fwdstep.core.block import Block, shape_str
 from fwdstep.core.errors import AlgebraicLoopError, DiagramError, ParameterError, ShapeError, WiringError
@@ -21,7 +22,6 @@ class Structure:
     spec: DiagramSpec
     blocks: list          # Block instances in evaluation order
     drivers: dict         # (block, in_port) -> (block, out_port)
-    graph: nx.DiGraph
 
 
 def instantiate(spec: DiagramSpec, errors: list | None = None) -> list:
@@ -140,20 +140,18 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
         errors[0].more = errors[1:]
         raise errors[0]
 
-    g = nx.DiGraph()
+    # port-level graph: connections plus each block's feedthrough edges
+    succ: dict = {}
     for blk in blocks:
         for out in blk.outputs:
-            g.add_node(("out", blk.name, out))
+            succ.setdefault(("out", blk.name, out), [])
             for inp in blk.feedthrough(out):
-                g.add_edge(("in", blk.name, inp), ("out", blk.name, out))
+                succ.setdefault(("in", blk.name, inp), []).append(("out", blk.name, out))
         for inp in blk.inputs:
-            g.add_node(("in", blk.name, inp))
+            succ.setdefault(("in", blk.name, inp), [])
     for (db, dp), (sb, sp) in drivers.items():
-        g.add_edge(("out", sb, sp), ("in", db, dp))
-    try:
-        cycle = nx.find_cycle(g)
-    except nx.NetworkXNoCycle:
-        cycle = None
+        succ.setdefault(("out", sb, sp), []).append(("in", db, dp))
+    cycle = _find_cycle(succ)
     if cycle:
         names = [f"{n[1]}.{n[2]}" for n, _ in cycle] + [f"{cycle[0][0][1]}.{cycle[0][0][2]}"]
         first_block = cycle[0][0][1]
@@ -165,9 +163,8 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
             line=entry.line if entry else None, block=first_block)
 
     # block-level order: A before B when an output of A reaches B through a feedthrough input
-    bg = nx.DiGraph()
     index = {b.name: i for i, b in enumerate(blocks)}
-    bg.add_nodes_from(index)
+    block_succ: dict = {name: [] for name in index}
     for (db, dp), (sb, sp) in drivers.items():
         direct = [o for o in by_name[db].outputs if dp in by_name[db].feedthrough(o)]
         if direct and sb == db:
@@ -179,22 +176,55 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
                 "per stage, so a block cannot drive its own direct-feedthrough input",
                 file=where_file.get((db, dp), spec.file), line=where.get((db, dp)), block=db,
                 port=dp)
-        if direct:
-            bg.add_edge(sb, db)
-    try:
-        order = list(nx.lexicographical_topological_sort(bg, key=lambda n: index[n]))
-    except nx.NetworkXUnfeasible:
-        cyc = nx.find_cycle(bg)
+        if direct and db not in block_succ[sb]:
+            block_succ[sb].append(db)
+    order = _ordered(block_succ, index)
+    if order is None:
+        cyc = _find_cycle(block_succ)
         raise AlgebraicLoopError(
             "blocks " + " -> ".join(a for a, _ in cyc) + f" -> {cyc[0][0]} form a loop that is "
             "only broken inside a block whose outputs have different feedthrough; fwdstep "
             "evaluates each block once per stage, so split that block in two",
             file=entry_of[cyc[0][0]].file if cyc[0][0] in entry_of else spec.file,
             line=entry_of[cyc[0][0]].line if cyc[0][0] in entry_of else None) from None
-    return Structure(spec=spec, blocks=[by_name[n] for n in order], drivers=drivers, graph=g)
+    return Structure(spec=spec, blocks=[by_name[n] for n in order], drivers=drivers)
 
 
-def describe_block(blk: Block) -> str:
-    ins = ", ".join(f"{p.name}{shape_str(p.shape)}" for p in blk.inputs.values())
-    outs = ", ".join(f"{p.name}{shape_str(p.shape)}" for p in blk.outputs.values())
-    return f"{blk.name} ({blk.type_name}): in [{ins}] out [{outs}] states {blk.n_states}"
+def _ordered(succ: dict, index: dict) -> list | None:
+    """A topological order of ``succ`` (node -> successors) that takes, among the nodes ready
+    at each point, the one of smallest ``index`` (the diagram's own block order), so the
+    schedule is the same on every run; None if there is a cycle."""
+    indegree = {n: 0 for n in succ}
+    for n in succ:
+        for m in succ[n]:
+            indegree[m] += 1
+    ready = [(index[n], n) for n, k in indegree.items() if k == 0]
+    heapq.heapify(ready)
+    order = []
+    while ready:
+        _, n = heapq.heappop(ready)
+        order.append(n)
+        for m in succ[n]:
+            indegree[m] -= 1
+            if indegree[m] == 0:
+                heapq.heappush(ready, (index[m], m))
+    return order if len(order) == len(succ) else None
+
+
+def _find_cycle(succ: dict) -> list | None:
+    """One cycle of ``succ`` as a list of edges (u, v), or None.  graphlib (standard
+    library) checks for one; networkx, imported only then, names it the way it always has."""
+    try:
+        sorter = graphlib.TopologicalSorter()
+        for n, ms in succ.items():
+            sorter.add(n)
+            for m in ms:
+                sorter.add(m, n)
+        sorter.prepare()
+        return None
+    except graphlib.CycleError:
+        import networkx as nx
+        g = nx.DiGraph()
+        g.add_nodes_from(succ)
+        g.add_edges_from((n, m) for n, ms in succ.items() for m in ms)
+        return nx.find_cycle(g)
