@@ -16,6 +16,7 @@ from .simulate import SimulationInterrupted, simulate
 from .compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
 from .sweep import SweepResult, run_sweep  # noqa: E402
 from .labelled import load_sweep  # noqa: E402
+from .linearize import LinearModel, linearize, linearize_along  # noqa: E402 - the function
 
 __all__ = [
     "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
@@ -23,5 +24,6 @@ __all__ = [
     "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
     "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
     "SimulationInterrupted", "load_result", "compare", "run_sweep", "SweepResult", "load_sweep",
+    "linearize", "linearize_along", "LinearModel",
 ]
 __version__ = "0.1.0"

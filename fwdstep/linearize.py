@@ -117,10 +117,13 @@ class LinearModel:
     def margins(self, sign: float = -1.0, w=None) -> dict:
         """Gain and phase margins of the SISO loop L = sign * G (G this model; sign -1:
         the model is a loop opened at a signal, whose closing is positive feedback, so
-        1 + L is the return difference).  Crossings are bracketed on a log grid and refined
-        with Brent's method: the gain margin is 1/|L| where L crosses the negative real
-        axis (Im L = 0, Re L < 0), the phase margin 180 deg + angle L where |L| = 1; the
-        smallest of each (inf when there is no crossing)."""
+        1 + L is the return difference).  Crossings are bracketed on a log grid
+        (``frequency_grid``, or ``w``) and refined with Brent's method: a gain margin is
+        1/|L| where L crosses the negative real axis (Im L = 0, Re L < 0), a phase margin
+        180 deg + angle L (in (-180, 180]) where |L| = 1.  Every crossing is listed
+        (``gain_margins``: [(w, margin in dB)], ``phase_margins``: [(w, deg)]); the headline
+        values are the most critical ones (the gain margin closest to 0 dB, the phase margin
+        smallest in magnitude), inf when there is no crossing."""
         if self.D.shape != (1, 1):
             raise ConfigError(f"margins need one input and one output; the model has "
                               f"{self.D.shape[1]} inputs and {self.D.shape[0]} outputs")
@@ -131,36 +134,44 @@ class LinearModel:
             return sign * self.frequency_response([wk])[0, 0, 0]
 
         values = np.array([L(wk) for wk in w])
-        gm, w_pc = np.inf, np.nan
+        gains, phases = [], []
         im = values.imag
         for k in np.flatnonzero(np.sign(im[:-1]) * np.sign(im[1:]) < 0):
-            wc = brentq(lambda v: L(v).imag, w[k], w[k + 1], xtol=1e-14, rtol=1e-13)
+            wc = brentq(lambda v: L(v).imag, w[k], w[k + 1], xtol=1e-300, rtol=1e-13)
             Lc = L(wc)
-            if Lc.real < 0 and 1.0 / abs(Lc) < gm:
-                gm, w_pc = 1.0 / abs(Lc), wc
-        pm, w_gc = np.inf, np.nan
-        mag = np.log(np.abs(values))
+            if Lc.real < 0:
+                gains.append((float(wc), float(-20 * np.log10(abs(Lc)))))
+        with np.errstate(divide="ignore"):
+            mag = np.log(np.abs(values))
         for k in np.flatnonzero(np.sign(mag[:-1]) * np.sign(mag[1:]) < 0):
-            wc = brentq(lambda v: np.log(abs(L(v))), w[k], w[k + 1], xtol=1e-14, rtol=1e-13)
+            wc = brentq(lambda v: np.log(abs(L(v))), w[k], w[k + 1], xtol=1e-300,
+                        rtol=1e-13)
             phase = np.degrees(np.angle(L(wc)))
-            margin = (180.0 + phase + 180.0) % 360.0 - 180.0
-            if abs(margin) < abs(pm):
-                pm, w_gc = margin, wc
-        return {"gain_margin": gm, "gain_margin_db": 20 * np.log10(gm) if np.isfinite(gm)
-                else np.inf, "phase_crossover": w_pc, "phase_margin_deg": pm,
-                "gain_crossover": w_gc, "sign": sign}
+            phases.append((float(wc), float((phase + 360.0) % 360.0 - 180.0)))
+        out = {"gain_margin": np.inf, "gain_margin_db": np.inf, "phase_crossover": np.nan,
+               "phase_margin_deg": np.inf, "gain_crossover": np.nan, "sign": sign,
+               "gain_margins": gains, "phase_margins": phases}
+        if gains:
+            wc, db = min(gains, key=lambda g: abs(g[1]))
+            out.update(gain_margin=10 ** (db / 20), gain_margin_db=db, phase_crossover=wc)
+        if phases:
+            wc, pm = min(phases, key=lambda g: abs(g[1]))
+            out.update(phase_margin_deg=pm, gain_crossover=wc)
+        return out
 
-    def frequency_grid(self, n: int = 2000) -> np.ndarray:
-        """A log grid of angular frequencies spanning the poles and zeros (1e-3 of the
-        slowest to 1e3 of the fastest nonzero one)."""
+    def frequency_grid(self, n: int = 2000, decades: float = 2.0) -> np.ndarray:
+        """A log grid of angular frequencies spanning the poles and zeros (``decades``
+        below the slowest nonzero one to ``decades`` above the fastest)."""
         marks = np.abs(self.poles())
         try:
             marks = np.concatenate([marks, np.abs(self.zeros())])
         except ConfigError:
             pass
-        marks = marks[(marks > 1e-9) & np.isfinite(marks)]
+        marks = marks[np.isfinite(marks)]
+        if marks.size:      # near-zero poles (adaptation, integrators) set no range
+            marks = marks[marks > 1e-5 * marks.max()]
         lo, hi = (marks.min(), marks.max()) if marks.size else (1.0, 1.0)
-        return np.logspace(np.log10(lo) - 3, np.log10(hi) + 3, n)
+        return np.logspace(np.log10(lo) - decades, np.log10(hi) + decades, n)
 
     def to_dict(self) -> dict:
         """Everything as JSON-ready lists (complex numbers as [re, im])."""
