@@ -67,14 +67,17 @@ class LinearModel:
 
     def to_control(self):
         """python-control ``StateSpace`` with the signal and state names (optional extra
-        ``fwdstep[analysis]``)."""
+        ``fwdstep[analysis]``); python-control reserves '.' in names, so "BLOCK.PORT"
+        becomes "BLOCK:PORT"."""
         try:
             import control
         except ImportError:
             raise ConfigError("to_control needs python-control: pip install "
                               "'fwdstep[analysis]' (or 'control>=0.10')") from None
-        return control.ss(self.A, self.B, self.C, self.D, inputs=list(self.input_names),
-                          outputs=list(self.output_names), states=list(self.state_names))
+        def names(v):
+            return [n.replace(".", ":") for n in v]
+        return control.ss(self.A, self.B, self.C, self.D, inputs=names(self.input_names),
+                          outputs=names(self.output_names), states=names(self.state_names))
 
     # analysis ----------------------------------------------------------------------
     def poles(self) -> np.ndarray:
