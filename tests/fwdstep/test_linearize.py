@@ -27,40 +27,7 @@ connections:
 simulation: {{t_final: 2, step: 0.01}}
 """
 
-THEOREM1_POINT_MASS = """
-description: Theorem 1, eq. (2)-(5), on two point masses; at rest on target, theta_hat = theta
-parameters:
-  ell: 2
-  alpha: 4
-  K: 50
-  m: [1.5, 0.7]
-  Gamma: 2
-  qd: [0.2, -0.1]
-blocks:
-  qd:    {type: Constant, value: qd}
-  arm:   {type: PointMass, mass: m, q0: qd}
-  ref:   {type: ReferenceDynamics, variant: eq2, ell: ell, n: 2, alpha: alpha}
-  s:     {type: Sum, signs: "+-"}
-  Y:     {type: PointMassRegressor, n: 2}
-  Yth:   {type: Product}
-  Ks:    {type: Gain, gain: K*eye(2)}
-  tau:   {type: Sum, signs: "+-"}
-  adapt: {type: AdaptationLaw, gamma: Gamma, theta0: m}
-  e:     {type: Sum, signs: "+-"}
-connections:
-  - arm.q -> ref.q, Y.q, e.u1
-  - arm.qdot -> ref.qdot, Y.qdot, s.u1
-  - qd.y -> ref.q_d, e.u2
-  - ref.z -> s.u2, Y.zeta
-  - ref.zdot -> Y.zetad
-  - Y.Y -> Yth.a, adapt.W
-  - adapt.theta_hat -> Yth.b
-  - s.y -> Ks.u, adapt.e
-  - Yth.y -> tau.u1
-  - Ks.y -> tau.u2
-  - tau.y -> arm.tau
-simulation: {t_final: 1, step: 0.001}
-"""
+THEOREM1_POINT_MASS = "examples/theorem1_pointmass.yaml"   # also the study's
 
 
 def _diagram(tmp_path, text, name="d.yaml", overrides=None):
@@ -150,7 +117,7 @@ def test_theorem1_point_mass_poles(tmp_path):
     and the s-dynamics m_i s' = -K s."""
     alpha, K, masses = 4.0, 50.0, (1.5, 0.7)
     for ell in (1, 2, 3, 4):
-        d = _diagram(tmp_path, THEOREM1_POINT_MASS, overrides={"ell": ell})
+        d = fwdstep.load_diagram(THEOREM1_POINT_MASS, {"ell": ell})
         m = linearize(d, inputs=["qd.y"], outputs=["e.y"], t=0.0)
         names = m.state_names
         adapt = [i for i, n in enumerate(names) if n.startswith("adapt.")]
@@ -306,3 +273,18 @@ def test_urdf_arm_jacobian_against_pinocchio_derivatives():
     assert np.max(np.abs(dx[n:, :n] - dqdd_dq)) <= 1e-7 * scale
     assert np.max(np.abs(dx[n:, n:] - dqdd_dv)) <= 1e-7 * scale
     assert np.max(np.abs(jac.part("dx", "u.tau")[0][n:] - Minv)) <= 1e-7 * scale
+
+
+def test_theorem7_learned_frequency_is_a_notch():
+    """diagrams/theorem7.yaml frozen with theta_hat = omega^2 (the learned value; omega = 3)
+    and the true robot parameters, at rest: the disturbance tau* cannot reach q at omega
+    (|H(j omega)| ~ 0, an internal model: zeros at +-j omega); with theta_hat = 0 it can."""
+    over = {"vartheta0": "[3.34, 0.97, 1.04, 0.6]", "qd_amp": [0, 0], "tau_amp": 0}
+    w = np.array([1.0, 2.0, 3.0, 4.0, 6.0])
+    gains = {}
+    for theta in (0.0, 9.0):
+        d = fwdstep.load_diagram("diagrams/theorem7.yaml", dict(over, theta0=theta))
+        m = linearize(d, inputs=["dist.y[0]"], outputs=["plant.q[0]"], t=0.0)
+        gains[theta] = np.abs(m.frequency_response(w)[:, 0, 0])
+    assert gains[9.0][2] <= 1e-12 * gains[9.0].max()
+    assert gains[0.0][2] >= 0.5 * gains[0.0].max()
