@@ -27,6 +27,9 @@ _PUBLIC = {
     "compare": "fwdstep.views.compare",
     "run_sweep": "fwdstep.sweeps.sweep",
     "SweepResult": "fwdstep.sweeps.sweep",
+    "linearize": "fwdstep.analysis.linearize",
+    "linearize_along": "fwdstep.analysis.linearize",
+    "LinearModel": "fwdstep.analysis.linearize",
 }
 _ERRORS = ("FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
            "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError",

@@ -109,6 +109,26 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--force", action="store_true")
     sw.add_argument("-q", "--quiet", action="store_true")
     _add_results_commands(sub, run)
+    lin = sub.add_parser("linearize", help="linear model of a diagram at a time of its run: "
+                                           "A, B, C, D, poles, zeros, Bode figure, margins")
+    lin.add_argument("diagram", help=_DIAGRAM_HELP)
+    lin.add_argument("--input", action="append", default=[], required=True, metavar="SIGNAL",
+                     help="analysis point BLOCK.PORT or BLOCK.PORT[i]: the signal + u "
+                          "(repeatable)")
+    lin.add_argument("--output", action="append", default=[], required=True,
+                     metavar="SIGNAL", help="measured signal (repeatable)")
+    lin.add_argument("--at", type=float, default=0.0, metavar="T",
+                     help="time of the run whose state is used (default 0: the initial state)")
+    lin.add_argument("--open", action="append", default=None, metavar="SIGNAL",
+                     help="cut the loop at this signal (loop transfer; margins for SISO)")
+    lin.add_argument("--along", type=int, default=0, metavar="N",
+                     help="also linearise at N times of one run: poles over time")
+    lin.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
+    lin.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
+    lin.add_argument("-o", "--outdir", default=None,
+                     help="output directory (default: out/<diagram name>/linear)")
+    lin.add_argument("--force", action="store_true", help="overwrite existing results")
     return p
 
 
@@ -254,6 +274,10 @@ def _main(argv=None) -> int:
         if args.command == "sweep":
             from fwdstep.cli.verbs import cmd_sweep
             return cmd_sweep(args)
+        if args.command == "linearize":
+            from fwdstep.cli.verbs import cmd_linearize
+            return cmd_linearize(args.diagram, args.input, args.output, args.at, args.open,
+                                 args.along, args.set, args.outdir, args.force)
     except KeyboardInterrupt as exc:
         reason = getattr(exc, "reason", "interrupted by the user")
         print(f"fwdstep: {reason}", file=sys.stderr)

@@ -9,9 +9,15 @@ import os
 import signal
 import sys
 
+import numpy as np
+
+from fwdstep.analysis.linear_outputs import ALONG_FILES, FILES, write_along, write_linear
+from fwdstep.analysis.linearize import linearize, linearize_along
 from fwdstep.cli.commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_INTERRUPTED,
-                                  EXIT_OK, _overrides)
-from fwdstep.core.errors import DiagramError, FwdstepError, OutputError, one_line
+                                  EXIT_OK, _err, _overrides, default_outdir)
+from fwdstep.core.errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
+                                 OutputError, SimulationError, one_line, printable)
+from fwdstep.structure.compiler import load_diagram
 from fwdstep.results.outputs import OutputDir
 from fwdstep.results.sweep_format import CSV_FILE, PARTS_DIR
 from fwdstep.structure.schema import schema_text
@@ -204,3 +210,54 @@ def cmd_schema(output: str | None = None) -> int:
         return 2
     return 0
 
+
+# ---------------------------------------------------------------------------- linearize
+def cmd_linearize(path: str, inputs, outputs, at: float = 0.0, open_=None, along: int = 0,
+                  sets=None, outdir: str | None = None, force: bool = False) -> int:
+    """``fwdstep linearize``; exit 0, or 2 with one line on a wrong diagram/option/signal,
+    3/4 when the run to the linearisation time diverged/failed."""
+    outdir = outdir or os.path.join(default_outdir(path), "linear")
+    try:
+        d = load_diagram(path, _overrides(sets))
+        expected = list(FILES) + (list(ALONG_FILES) if along else [])
+        out = OutputDir(outdir, force, expected=expected)
+        out.__enter__()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    try:
+        model = linearize(d, inputs=inputs, outputs=outputs, t=at, open=open_)
+        siso = model.D.shape == (1, 1)
+        margins = model.margins() if siso and open_ else None
+        name = os.path.basename(path)
+        title = (f"{name}: {', '.join(inputs)} -> {', '.join(outputs)}"
+                 + (f", opened at {', '.join(model.opened)}" if model.opened else "")
+                 + f", t = {model.t:g} s")
+        written = write_linear(model, out.dir, margins, title)
+        if along:            # the closed loop's poles (A does not depend on the points)
+            models = linearize_along(d, inputs, outputs, n=along)
+            written += write_along(models, out.dir, f"{name}: frozen-time poles of the "
+                                                    f"closed loop at {len(models)} times")
+        written = out.commit()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    except SimulationError as exc:
+        _err(f"the run to t = {at:g} s stopped: {exc}")
+        return EXIT_DIVERGED if isinstance(exc, DivergenceError) else (
+            EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else EXIT_INPUT)
+    finally:
+        out.__exit__(None, None, None)
+    poles = model.poles()
+    slowest = poles[np.argmax(poles.real)] if poles.size else None
+    line = (f"linearised at t = {model.t:g} s: {model.A.shape[0]} states, "
+            f"{len(model.input_names)} inputs, {len(model.output_names)} outputs")
+    if slowest is not None:
+        line += (f"; rightmost pole of the {'opened' if model.opened else 'closed'} loop "
+                 f"{slowest.real:.4g}{slowest.imag:+.4g}j")
+    if margins:
+        line += (f"; gain margin {margins['gain_margin_db']:.3g} dB, phase margin "
+                 f"{margins['phase_margin_deg']:.3g} deg")
+    print(line)
+    print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
+    return 0

@@ -67,7 +67,8 @@ def _plugged(name: str, d):
 
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
              fuse: bool = True, backend: str | None = None,
-             log_dir: str | None = None, max_log_bytes: int | None = None) -> Result:
+             log_dir: str | None = None, max_log_bytes: int | None = None,
+             record_states: bool = False) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -81,6 +82,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``fwdstep.compiled.backend_numba``; batches run their variants in parallel).
     ``log_dir``: record into memory-mapped files in that directory instead of memory
     (``fwdstep run --log-to-disk``; NumPy backend).
+    ``record_states``: also keep the state at every recorded time as ``result.states``
+    (rows, B, n_states) (NumPy backend, fixed-step solvers; ``fwdstep.linearize`` reads it).
     The log's size is checked before anything is allocated (``fwdstep.core.budgets.check_log``):
     at most ``max_log_bytes`` in memory (default ``budgets.DEFAULT_MAX_LOG_BYTES``, 2 GiB),
     or, with ``log_dir``, half the free space there; else ``ConfigError`` with the numbers.
@@ -88,6 +91,9 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     from fwdstep.core.budgets import check_log
     check_log(d, max_log_bytes, to_disk=log_dir, api=True)
     cfg = d.spec.simulation
+    if record_states and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
+        raise ConfigError("recording the states needs the numpy backend and a fixed-step "
+                          "solver", file=d.file)
     if log_dir is not None and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
         raise ConfigError("--log-to-disk works with the numpy backend and the fixed-step "
                           "solvers only", file=d.file)
@@ -118,6 +124,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.run.finite)
     probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
     prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled, probe=probe)
+    states = np.full((n_rows, B, N), np.nan) if record_states else None
     check = finite.OutputCheck(d, *probe) if probe else None
     reasons: dict = {}                        # variant of a batch -> why it diverged
     x = prog.xn
@@ -147,6 +154,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                             apply_updates(sub.event, ts, x, prog.sample_signals)
                         if i == 0 and n % every == 0:
                             prog.first_record_ts(t, ts, row)
+                            if states is not None:
+                                states[row] = x
                             row += 1
                         else:
                             prog.first_ts(ts)
@@ -154,6 +163,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                 else:
                     if n % every == 0:
                         first_record(t, row)
+                        if states is not None:
+                            states[row] = x
                         row += 1
                     else:
                         first(t)
@@ -207,6 +218,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
                     if end.updates:
                         apply_updates(end, max(t, end.hi), x, prog.sample_signals)
                     prog.final_ts(t, max(t, end.hi), row)
+                if states is not None:
+                    states[row] = x
                 row += 1
                 bad = check.failed(alive) if check is not None else None
                 if bad is not None:
@@ -224,7 +237,10 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             error = _locate_failure(d, t, x, exc)
             error.__cause__ = exc
             status, message = "error", str(error)
-    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
-                   n, t, wall0, reasons)
+    result = _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
+                     n, t, wall0, reasons)
+    if states is not None:
+        result.states = states[:len(result.t)]
+    return result
 
 
