@@ -16,7 +16,7 @@ import numpy as np
 
 from fwdstep.core.block import Block, Param
 from fwdstep.core.errors import ParameterError
-from fwdstep.run.events import sample_instants
+from fwdstep.core.instants import sample_instants
 from fwdstep.core.linear import observer_form
 from fwdstep.core.registry import register
 

@@ -541,7 +541,7 @@ class Pulse(Block):
                          static=(self.period, self.width, self.delay))
 
     def discontinuities(self, t_final):
-        from fwdstep.run.events import sample_instants
+        from fwdstep.core.instants import sample_instants
         rises = sample_instants(self, self.period, self.delay, t_final)
         return np.concatenate([rises, rises + self.width])
 

@@ -283,7 +283,7 @@ class Block:
         stage of a step that ends at time T is evaluated at a time < T (left limit), every
         stage of the next step at a time >= T (right limit).  A block's output must
         therefore be right-continuous: use ``t >= T``, never ``t > T``.  For many regular
-        instants use ``fwdstep.run.events.sample_instants``.  Keep the times (or the period) in
+        instants use ``fwdstep.core.instants.sample_instants``.  Keep the times (or the period) in
         an attribute set in ``setup``, outside ``p``, so that variants with other times never
         share a batch (one batch, one grid).  docs/discrete-time.md."""
         return _NO_TIMES

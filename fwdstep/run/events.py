@@ -25,27 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fwdstep.core.errors import ConfigError, SimulationError
+from fwdstep.core.instants import MAX_EVENTS, sample_instants  # noqa: F401  (blocks' helper)
 
 #: events (and grid points) closer than SNAP * h are the same instant
 SNAP = 1e-9
-#: the most event times one block may declare in a run
-MAX_EVENTS = 10_000_000
-
-
-def sample_instants(block, period: float, offset: float, t_final: float) -> np.ndarray:
-    """``offset + k * period`` for k = 0, 1, ... up to t_final (each computed from k, never
-    accumulated).  Refuses a period that would give more than MAX_EVENTS instants."""
-    if not period > 0:
-        raise ConfigError(f"block '{block.name}': sample period must be positive, got "
-                          f"{period:g}", block=block.name)
-    count = math.floor((t_final - offset) / period + 1e-9) + 1 if offset <= t_final else 0
-    if count > MAX_EVENTS:
-        raise ConfigError(f"block '{block.name}': sample period {period:g} s gives {count:.3g} "
-                          f"sample instants up to t_final (limit {MAX_EVENTS:.0e})",
-                          block=block.name)
-    return offset + np.arange(max(count, 0)) * period
-
-
 @dataclass
 class Event:
     lo: float                        # the earliest of the merged times (left limits before it)
