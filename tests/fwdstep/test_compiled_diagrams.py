@@ -6,9 +6,10 @@ exactly the diagrams of ``REFUSED`` (block type -> why), in one line naming the 
 fast test checks that list against every shipped diagram (a new refusal, or a diagram that
 became compilable, fails it), without compiling anything.
 
-The slow test (``pytest -m slow``) compiles each diagram's structure (tens of seconds each
-on a loaded 2-core machine; later runs load the machine code from the cache directory kept
-in pytest's cache) and compares every logged signal to 1e-12 of its scale.
+``test_shipped_diagram_on_both_paths`` compiles each diagram's structure and compares every
+logged signal to 1e-12 of its scale: in the default suite for every diagram that traces to a
+scalar stage (about 30 s in all on a cold cache), with ``pytest -m slow`` for the few that run
+the array code (``ARRAY_CODE``: tens of seconds each).
 """
 import glob
 import os
@@ -28,6 +29,18 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SHIPPED = sorted(glob.glob(os.path.join(ROOT, "diagrams", "*.yaml"))
                  + glob.glob(os.path.join(ROOT, "diagrams", "robots", "*.yaml")))
 STEPS = 40
+#: diagrams the scalar stage cannot trace (complex numbers in the n-link kernels, integer
+#: hashing in WhiteNoise, pinocchio in object mode): the compiled backend runs them with the
+#: array code, which jits every kernel (minutes on a cold cache), so they stay in the slow tier
+ARRAY_CODE = ("computed_torque_nlink", "pd_gravity_nlink", "theorem3_measurement_noise",
+              "robots/")
+
+
+def _tier(path):
+    """The quick tier (default suite) for every diagram that traces; the rest is slow."""
+    slow = any(part in _name(path) for part in ARRAY_CODE)
+    return pytest.param(path, marks=pytest.mark.slow, id=_name(path)) if slow else \
+        pytest.param(path, id=_name(path))
 
 #: block types the compiled backend refuses, and why (the diagrams holding one are refused)
 REFUSED = {
@@ -83,8 +96,7 @@ def test_compiled_backend_refuses_exactly_the_listed_blocks(path):
     assert any(f"'{n}'" in text for n in names), text
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("path", SHIPPED, ids=_name)
+@pytest.mark.parametrize("path", [_tier(p) for p in SHIPPED])
 def test_shipped_diagram_on_both_paths(path):
     spec = _short(path)
     if spec.simulation.solver in IVP_METHODS:

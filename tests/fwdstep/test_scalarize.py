@@ -230,3 +230,27 @@ def test_the_llvm_stage_records_and_reports_a_non_finite_output():
     ws[1] = 0.0                                                   # 3 / 0: not finite
     assert f(1, 0.0, 0, 0, ws.ctypes.data, L.ctypes.data) == 2
     assert f(0, 0.0, 0, 0, ws.ctypes.data, L.ctypes.data) == 0    # no record, no check
+
+
+@pytest.mark.parametrize("a,b", [(0.3, 0.9), (0.9, 0.3), (0.6, 0.6)])
+def test_the_llvm_stage_computes_reflected_operators_and_every_comparison(a, b):
+    """Reflected operators (a constant on the left) and each comparison, at points below,
+    above and ON the boundary, where a '>=' compiled as '>' (or '<=' as '<') would differ."""
+    tr = sz.Trace()
+    x0, x1 = tr.leaf("x0", False), tr.leaf("x1", False)
+    exprs = [1.0 - x0, 2.0 / x0, 3.0 + x0, 4.0 * x0, 2.0 ** x0, 1.5 - x0 / x1,
+             tr.select(x0 >= x1, 1.0, 2.0), tr.select(x0 <= x1, 1.0, 2.0),
+             tr.select(x0 > x1, 1.0, 2.0), tr.select(x0 < x1, 1.0, 2.0),
+             tr.select(x0 == x1, 1.0, 2.0), tr.select(x0 != x1, 1.0, 2.0),
+             (x0 >= x1) * 3.0, (x0 <= x1) * 3.0]
+    st, f = _stage(exprs)
+    want = [1.0 - a, 2.0 / a, 3.0 + a, 4.0 * a, 2.0 ** a, 1.5 - a / b,
+            1.0 if a >= b else 2.0, 1.0 if a <= b else 2.0, 1.0 if a > b else 2.0,
+            1.0 if a < b else 2.0, 1.0 if a == b else 2.0, 1.0 if a != b else 2.0,
+            3.0 * (a >= b), 3.0 * (a <= b)]
+    n = len(exprs)
+    ws = np.zeros(st.oz + 1)
+    ws[0], ws[1] = a, b
+    L = np.zeros(1)
+    assert f(0, 0.0, 2, 0, ws.ctypes.data, L.ctypes.data) == 0
+    assert ws[n + 2 * n:n + 3 * n].tolist() == want
