@@ -1,9 +1,19 @@
 """The numba twins of ``fwdstep.core.kernelops`` (same names, same results), bound in place of the
-NumPy versions when the compiled backend jits a block's kernels.  Imports numba."""
+NumPy versions when the compiled backend jits a block's kernels.  Without numba (the optional
+``fast`` extra) they stay plain Python loops: the tracer (``fwdstep.compiled.scalarize``), which
+the linear analysis also uses, reads them as such."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+try:
+    from numba import njit
+except ImportError:
+    def njit(*args, **kwargs):
+        """Without numba: the function itself (the decorator's arguments are ignored)."""
+        if len(args) == 1 and callable(args[0]) and not kwargs:
+            return args[0]
+        return lambda fn: fn
 
 
 @njit(cache=False)
