@@ -76,7 +76,7 @@ def test_plant_batch_equals_single_runs_and_theta_is_the_inertias():
     for b in range(3):
         np.testing.assert_array_equal(
             batch[b], arm.derivative(0.0, x[b:b + 1], (tau[b:b + 1], np.zeros((1, 6))))[0])
-    q, qdot, theta = arm.output(0.0, x[:1], ())
+    q, qdot, theta = arm.output(0.0, x[:1], (tau[:1], np.zeros((1, 6))))
     np.testing.assert_array_equal(q, x[:1, :6])
     masses = theta[0].reshape(6, 10)[:, 0]
     np.testing.assert_allclose(masses, [model.inertias[j].mass for j in range(1, 7)])
@@ -84,8 +84,12 @@ def test_plant_batch_equals_single_runs_and_theta_is_the_inertias():
 
 
 def test_locked_joints_and_urdf_file():
-    panda_all = URDFArm("arm", robot="panda", locked_joints=[])
-    assert panda_all.outputs["q"].shape == (9,)
+    panda_8 = URDFArm("arm", robot="panda", locked_joints=["panda_finger_joint2"])
+    assert panda_8.outputs["q"].shape == (8,)
+    with pytest.raises(ParameterError, match=r"^block 'arm': the robot's joint "
+                       r"'panda_finger_joint2' mimics 'panda_finger_joint1' \(<mimic>\), which "
+                       r"is not supported: lock it \(locked_joints\)$"):
+        URDFArm("arm", robot="panda", locked_joints=[])
     relative = NAMED_ROBOTS["ur5"][0]
     by_file = URDFArm("arm", urdf=str(_robots_folder("t") / relative))
     by_name = URDFArm("arm", robot="ur5")
