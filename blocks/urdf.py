@@ -31,6 +31,7 @@ from fwdstep.errors import ParameterError
 from fwdstep.registry import register
 
 from . import rigid_body as rb
+from .rigid_body import forward_dynamics, regressor as christoffel_regressor
 from .nonlinear import friction_output
 from .robot import MechanicalPlant
 
@@ -305,16 +306,18 @@ def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous
     torque = tau + tau_star
     if friction:
         torque = torque + friction_output(t, x, qdot, coulomb, viscous, velocity_scale)[0]
-    qddot = rb.forward_dynamics(tree, gravity, inertia, q, qdot, torque)
+    qddot = forward_dynamics(tree, gravity, inertia, q, qdot, torque)
     dx = np.empty((qddot.shape[0], 2 * n))
     dx[:, :n] = qdot
     dx[:, n:] = qddot
     return dx
 
 
+# (the kernels call rigid_body's functions by name: the tracer rebinds a kernel's global
+# functions, not a module's attributes)
 def regressor_output(t, x, q, qdot, zeta, zetad, tree, gravity, columns):
     """Y (B, n, p) of the wanted columns of the Christoffel regressor."""
-    return (rb.regressor(tree, gravity, columns, q, qdot, zeta, zetad),)
+    return (christoffel_regressor(tree, gravity, columns, q, qdot, zeta, zetad),)
 
 
 @register
