@@ -501,6 +501,63 @@ def frame_placements(tree, q):
     return pos, rot
 
 
+def frame_kinematics(tree, frame, q, qd):
+    """Pose, Jacobian and Jdot qdot of one frame fixed to a body: ``frame`` (Bp, 13) holds
+    [joint index k (0-based), R (9, row-major), p (3)], the frame's placement in joint k's
+    frame.  Returns position (B, 3) and rotation (B, 3, 3) in the base frame, J (B, 6, n)
+    with [v; w] = J qdot (velocity of the frame's origin and angular velocity, base axes:
+    pinocchio's LOCAL_WORLD_ALIGNED) and the acceleration of the origin and angular
+    acceleration at qddot = 0, (B, 6) (so [a; alpha] = J qddot + Jdot qdot)."""
+    S = _structure(tree)
+    f = frame[0].astype("f8").tolist()
+    k, Rf, pf = int(f[0]), tuple(f[1:10]), tuple(f[10:13])
+    X = _joint_transforms(S, q)
+    n = len(S)
+    chain = [k]
+    while S[chain[-1]][0] >= 0:
+        chain.append(S[chain[-1]][0])
+    chain.reverse()
+    # world placements of the chain's joints, and body velocity / bias acceleration
+    Rw, ow = {}, {}
+    w, v, aw, av = ZERO3, ZERO3, ZERO3, ZERO3
+    for i in chain:
+        parent, kind, E, p, a = S[i]
+        R, t = X[i]
+        if parent < 0:
+            Rw[i], ow[i] = R, t
+        else:
+            Rw[i], ow[i] = _matmul3(Rw[parent], R), _vadd(ow[parent], _rot(Rw[parent], t))
+        w, v = _motion_to_child(X[i], w, v)
+        aw, av = _motion_to_child(X[i], aw, av)
+        sw, sv = _subspace(kind, a)
+        jw, jv = _scale(qd[:, i], sw), _scale(qd[:, i], sv)
+        aw = _vadd(aw, _cross(w, jw))
+        av = _vadd(av, _vadd(_cross(w, jv), _cross(v, jw)))
+        w, v = _vadd(w, jw), _vadd(v, jv)
+    Rk = Rw[k]
+    position = _vadd(ow[k], _rot(Rk, pf))
+    rotation = _matmul3(Rk, Rf)
+    B = max(q.shape[0], qd.shape[0])
+    J = np.zeros((B, 6, n))
+    for i in chain:
+        kind, a = S[i][1], S[i][4]
+        axis = _rot(Rw[i], a)
+        lin = _cross(axis, _vsub(position, ow[i])) if kind == REVOLUTE else axis
+        for r in range(3):
+            J[:, r, i] = lin[r]
+            if kind == REVOLUTE:
+                J[:, 3 + r, i] = axis[r]
+    # classical acceleration of the point pf: a_v + w x v + aw x pf + w x (w x pf)
+    acc = _vadd(_vadd(av, _cross(w, v)), _vadd(_cross(aw, pf), _cross(w, _cross(w, pf))))
+    bias = _fill(B, _rot(Rk, acc) + _rot(Rk, aw))
+    pos = _fill(B, position)
+    rot = np.empty((B, 3, 3))
+    for r in range(3):
+        for c in range(3):
+            rot[:, r, c] = rotation[3 * r + c]
+    return pos, rot, J, bias
+
+
 # ------------------------------------------------------------------- model extraction
 def _snap(v: float) -> float:
     """The structure's numbers with rounding noise of unit rotations (cos(pi/2) = 6e-17)
@@ -536,6 +593,21 @@ def tree_from_pinocchio(model) -> np.ndarray:
         row += [_snap(v) for v in axis / np.linalg.norm(axis)]
         rows.append(row)
     return np.array(rows, dtype=float)
+
+
+def frame_from_pinocchio(model, name: str) -> np.ndarray:
+    """[joint index (0-based), R (9), p (3)] of a pinocchio frame (a URDF link or joint);
+    KeyError when the model has no such frame."""
+    if not model.existFrame(name):
+        raise KeyError(name)
+    fr = model.frames[model.getFrameId(name)]
+    joint = getattr(fr, "parentJoint", None)
+    joint = fr.parent if joint is None else joint
+    if joint < 1:
+        raise KeyError(name)
+    R = [_snap(v) for v in np.asarray(fr.placement.rotation).reshape(-1)]
+    return np.array([float(joint - 1)] + R
+                    + [_snap(v) for v in np.asarray(fr.placement.translation)])
 
 
 def theta_from_pinocchio(model) -> np.ndarray:

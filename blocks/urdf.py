@@ -31,7 +31,7 @@ from fwdstep.errors import ParameterError
 from fwdstep.registry import register
 
 from . import rigid_body as rb
-from .rigid_body import forward_dynamics, regressor as christoffel_regressor
+from .rigid_body import forward_dynamics, frame_kinematics, regressor as christoffel_regressor
 from .nonlinear import friction_output
 from .robot import MechanicalPlant
 
@@ -524,3 +524,67 @@ class URDFRegressor(Block):
             Y = regressor(*args, q[b], qdot[b], zeta[b], zetad[b])
             out[b] = Y if cols is None else Y[:, cols]
         return (out,)
+
+
+def frame_output(t, x, q, qdot, tree, frame):
+    """position, rotation, J, Jdot qdot of the block's frame (blocks/rigid_body.py)."""
+    return frame_kinematics(tree, frame, q, qdot)
+
+
+@register
+class URDFFrame(Block):
+    """Pose, Jacobian and Jdot qdot of a URDF frame: the task-space kinematics of a robot.
+
+    For the frame ``frame`` (a link or joint name of the URDF, e.g. the UR5's ``tool0`` or
+    the Panda's ``panda_hand``) of the robot described as for ``URDFArm``: its position p and
+    rotation R in the base frame, the Jacobian J with [pdot; omega] = J(q) qdot (velocity of
+    the frame's origin and angular velocity, base axes: pinocchio's LOCAL_WORLD_ALIGNED) and
+    Jdot qdot, the acceleration [pddot; omegadot] at qddot = 0, so that
+    [pddot; omegadot] = J qddot + Jdot qdot.  Computed by fwdstep's kernels
+    (blocks/rigid_body.py ``frame_kinematics``; traced in compiled runs).
+
+    Equation: p, R = FK(q); [pdot; omega] = J(q) qdot; [pddot; omegadot] = J qddot + Jdot qdot.
+
+    Ports:
+        | port      | direction | shape  | feedthrough |
+        | q         | in        | (n,)   | -           |
+        | qdot      | in        | (n,)   | -           |
+        | position  | out       | (3,)   | q           |
+        | rotation  | out       | (3, 3) | q           |
+        | J         | out       | (6, n) | q           |
+        | Jdot_qdot | out       | (6,)   | q, qdot     |
+
+    Parameters:
+        robot / urdf, locked_joints: the robot (see ``URDFArm``).
+        frame: the frame's name (a URDF link or joint).
+    """
+
+    params = {k: v for k, v in _robot_params().items()
+              if k in ("robot", "urdf", "locked_joints")}
+    params["frame"] = Param("str", doc="a URDF link or joint name (e.g. tool0, panda_hand)")
+    example = {"robot": "ur5", "frame": "tool0"}
+    summary = classmethod(_summary_with_hint)
+    compile_with = "traced"
+
+    def setup(self, robot, urdf, locked_joints, frame):
+        _pinocchio(self.name, self.type_name)
+        model = load_model(self, robot, urdf, locked_joints, 0.0)[0]
+        try:
+            placement = rb.frame_from_pinocchio(model, frame)
+        except KeyError:
+            names = ", ".join(f.name for f in model.frames if f.name != "universe")
+            raise ParameterError(f"block {self.name!r} parameter 'frame': the robot has no "
+                                 f"frame {frame!r} on a moving body; frames are: {names}"[:400],
+                                 block=self.name) from None
+        n = model.nv
+        self.declare_input("q", (n,))
+        self.declare_input("qdot", (n,))
+        self.declare_output("position", (3,), feedthrough=("q",), label="$p$", unit="m",
+                            components=["x", "y", "z"])
+        self.declare_output("rotation", (3, 3), feedthrough=("q",), label="$R$")
+        self.declare_output("J", (6, n), feedthrough=("q",), label="$J$")
+        self.declare_output("Jdot_qdot", (6,), feedthrough=("q", "qdot"),
+                            label=r"$\dot J \dot q$")
+        self.set_param("tree", rigid_body_model(*self.robot_description)[0])
+        self.set_param("frame", placement)
+        self.set_kernels(output=frame_output, params=("tree", "frame"))

@@ -199,6 +199,29 @@ def test_a_batch_equals_its_variants_one_by_one(robot):
             np.testing.assert_array_equal(got[b], want[0])
 
 
+FRAMES = {"panda": "panda_hand", "ur5": "tool0"}
+
+
+def test_frame_pose_jacobian_and_jdot_qdot_are_pinocchio_s(robot):
+    """A frame of the last body (the Panda's hand, the UR5's tool0, link l5): position,
+    rotation, LOCAL_WORLD_ALIGNED Jacobian and classical acceleration at qddot = 0."""
+    model, data, tree, _, path, _ = robot
+    n = model.nv
+    name = next((f for r, f in FRAMES.items() if r in path), "l5")
+    frame = rb.frame_from_pinocchio(model, name)[None]
+    fid = model.getFrameId(name)
+    for q, v, *_ in states(n):
+        pin.forwardKinematics(model, data, q, v, np.zeros(n))
+        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, data, q)
+        pos, rot, J, bias = rb.frame_kinematics(tree, frame, q[None], v[None])
+        close(pos[0], data.oMf[fid].translation)
+        close(rot[0], data.oMf[fid].rotation)
+        close(J[0], pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED))
+        acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        close(bias[0], np.concatenate([acc.linear, acc.angular]))
+
+
 # ------------------------------------------------------------------------------ tracing
 frame_placements = rb.frame_placements
 

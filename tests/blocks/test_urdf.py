@@ -405,3 +405,28 @@ def test_robot_diagrams_trace_to_a_scalar_stage(name):
                          [d.signal_index[n] for n in d.logged], unlogged_signals(d), 4)
     assert 1000 < st.n_nodes < 8000
     llvm.parse_assembly(stage_ir(st)).verify()
+
+
+def test_urdf_frame_block_is_pinocchio_s_task_space_kinematics():
+    from fwdstep.blocks.urdf import URDFFrame
+    model, data = reference_model("ur5")
+    fid = model.getFrameId("tool0")
+    blk = URDFFrame("ee", robot="ur5", frame="tool0")
+    assert blk.outputs["J"].shape == (6, 6)
+    assert blk.feedthrough("position") == ("q",)
+    for q, v, _, _ in points(6, 3, 11):
+        pos, rot, J, bias = (y[0] for y in blk.output(0.0, None, (q[None], v[None])))
+        pin.forwardKinematics(model, data, q, v, np.zeros(6))
+        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, data, q)
+        np.testing.assert_allclose(pos, data.oMf[fid].translation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(rot, data.oMf[fid].rotation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(J, pin.getFrameJacobian(model, data, fid,
+                                                           pin.LOCAL_WORLD_ALIGNED),
+                                   rtol=0, atol=1e-12)
+        acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(bias, np.concatenate([acc.linear, acc.angular]), rtol=0,
+                                   atol=1e-12 * max(1.0, np.abs(bias).max()))
+    with pytest.raises(ParameterError, match="^block 'ee' parameter 'frame': the robot has "
+                                             "no frame 'hand' on a moving body; frames are: "):
+        URDFFrame("ee", robot="ur5", frame="hand")
