@@ -16,11 +16,21 @@ that both integrate the same closed loop.  Both sides record every 10th step.  R
 interleaved (A, B, A, B, ...) so that a busy machine slows both alike; the ratio is of medians
 of wall times measured in this one run.  Target (issue 12): fwdstep <= 2x the hand loop.
 
-``--compiled`` also times ``--backend compiled`` (numba; URDFArm and URDFRegressor are called
-from the compiled loop in object mode, fwdstep/run/python_blocks.py), interleaved with the others,
-after one untimed short run that compiles (or loads) the structure, and prints its ratio to
-the NumPy path.  ``--diagram`` picks another robot diagram (the hand loop is Theorem 1's only:
-it is skipped for any other).
+``--compiled`` also times ``--backend compiled`` (numba; URDFArm and URDFRegressor's kernels,
+blocks/rigid_body.py, traced into the loop's straight-line scalar code), interleaved with the
+others, after one untimed short run that compiles (or loads) the structure (its CPU time is
+printed: the first compile of a never-seen robot when the numba cache is cold), and prints its
+ratio to the NumPy path.  ``--diagram`` picks another robot diagram; the hand loops exist for
+Theorem 1 (above) and for Slotine-Li (diagrams/robots/{panda,ur5}_slotine_li.yaml:
+``tau = Y(q, qdot, z, zdot) theta_hat - K s``, ``theta_hat' = -Gamma Y^T s``, q_d a Sine,
+with the plant's URDF damping), skipped for any other.
+
+    python benchmarks/robots_benchmark.py --compiled --diagram diagrams/robots/panda_slotine_li.yaml
+    python benchmarks/robots_benchmark.py --kernels      # NumPy path: kernels vs pinocchio per batch
+
+``--kernels`` times, per batch size, one evaluation of the Panda's aba and Slotine-Li
+regressor by fwdstep's kernels (every variant in one pass) against pinocchio one variant at a
+time (the choice ``implementation: auto`` makes, blocks/urdf.py KERNELS_FROM_BATCH).
 """
 from __future__ import annotations
 
@@ -36,6 +46,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
 DIAGRAM = os.path.join(ROOT, "diagrams", "robots", "panda_theorem1.yaml")
+SLOTINE_LI = ("panda_slotine_li.yaml", "ur5_slotine_li.yaml")
 
 
 def hand_loop(d, t_final: float, step: float, log_every: int):
@@ -94,6 +105,99 @@ def hand_loop(d, t_final: float, step: float, log_every: int):
     return log, e_final
 
 
+def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
+    """The closed loop of {panda,ur5}_slotine_li.yaml, integrated by hand with pinocchio."""
+    import pinocchio as pin
+
+    blocks = {s.block.name: s.block for s in d.schedule}
+    Yb, arm = blocks["Y"], blocks["arm"]
+    model, data, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
+    cols = Yb._columns
+    n, p = model.nv, Yb.outputs["Y"].shape[1]
+    params = d.spec.parameters
+    lam = float(params["Lambda"])
+    K = np.asarray(fwdstep_value(d, "Ks", "gain"), float)
+    K = K if K.ndim == 2 else np.diag(np.broadcast_to(K, (n,)))
+    gamma = float(params["Gamma"])
+    q0 = np.asarray(params["q0"], float)
+    amp = np.asarray(params["qd_amplitude"], float)
+    w = float(params["qd_frequency"])
+    damping = arm.p.viscous[0]
+    x = np.concatenate([q0, np.zeros(n), np.full(p, float(params["theta0"]))])
+    iq, iv, ith = slice(0, n), slice(n, 2 * n), slice(2 * n, 2 * n + p)
+    regressor, aba = pin.computeJointTorqueRegressor, pin.aba
+    zeros = np.zeros(n)
+
+    def f(t, x):
+        q, v, theta = x[iq], x[iv], x[ith]
+        sn, cs = np.sin(w * t), np.cos(w * t)
+        e = q - (q0 + amp * sn)
+        z = amp * (w * cs) - lam * e
+        zdot = -amp * (w * w * sn) - lam * (v - amp * (w * cs))
+        s = v - z
+        Y = (regressor(model, data, q, 0.5 * (v + z), zdot)
+             - regressor(model0, data0, q, 0.5 * (v - z), zeros))[:, cols]
+        tau = Y @ theta - K @ s
+        dx = np.empty_like(x)
+        dx[iq] = v
+        dx[iv] = aba(model, data, q, v, tau - damping * v)
+        dx[ith] = -gamma * (Y.T @ s)
+        return dx
+
+    steps = int(round(t_final / step))
+    log = np.empty((steps // log_every + 1, x.size))
+    log[0] = x
+    t, h = 0.0, step
+    for k in range(1, steps + 1):
+        k1 = f(t, x)
+        k2 = f(t + 0.5 * h, x + 0.5 * h * k1)
+        k3 = f(t + 0.5 * h, x + 0.5 * h * k2)
+        k4 = f(t + h, x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        t = k * h
+        if k % log_every == 0:
+            log[k // log_every] = x
+    e_final = x[iq] - (q0 + amp * np.sin(w * t))
+    return log, e_final
+
+
+def fwdstep_value(d, block: str, key: str):
+    """A block's parameter as the diagram gave it (evaluated)."""
+    blk = next(s.block for s in d.schedule if s.block.name == block)
+    return blk.values[key]
+
+
+def kernels_against_pinocchio(robot: str = "panda", batches=(1, 16, 64, 256, 1024, 4096)):
+    """Seconds per evaluation of aba and of the Slotine-Li regressor, by fwdstep's kernels
+    (NumPy, every variant at once) and by pinocchio (one variant at a time), per batch size."""
+    from fwdstep.blocks.urdf import URDFArm, URDFRegressor
+    rng = np.random.default_rng(0)
+    rows = []
+    for B in batches:
+        timings = {}
+        for impl in ("kernels", "pinocchio"):
+            arm = URDFArm("arm", robot=robot, implementation=impl)
+            Y = URDFRegressor("Y", robot=robot, parameters="base", implementation=impl)
+            n = arm._n
+            x = rng.standard_normal((B, 2 * n))
+            tau = rng.standard_normal((B, n))
+            u = tuple(rng.standard_normal((4, B, n)))
+            for what, call in (("aba", lambda: arm.derivative(0.0, x, (tau, np.zeros((1, n))))),
+                               ("Y", lambda: Y.output(0.0, None, u))):
+                call()
+                reps = max(3, int(2000 / B))
+                t0 = time.perf_counter()
+                for _ in range(reps):
+                    call()
+                timings[(what, impl)] = (time.perf_counter() - t0) / reps
+        rows.append((B, timings))
+        print(f"B = {B:5d}: aba kernels {timings[('aba', 'kernels')] * 1e6 / B:8.2f} us/variant,"
+              f" pinocchio {timings[('aba', 'pinocchio')] * 1e6 / B:8.2f};  "
+              f"Y kernels {timings[('Y', 'kernels')] * 1e6 / B:8.2f} us/variant, pinocchio "
+              f"{timings[('Y', 'pinocchio')] * 1e6 / B:8.2f}", flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="interleaved repeats of each")
@@ -101,22 +205,30 @@ def main(argv=None) -> int:
     parser.add_argument("--diagram", default=DIAGRAM, help="robot diagram (default: "
                         "panda_theorem1.yaml; the hand loop runs for that one only)")
     parser.add_argument("--compiled", action="store_true",
-                        help="also time --backend compiled (pinocchio blocks in object mode)")
+                        help="also time --backend compiled (the robot kernels traced)")
+    parser.add_argument("--kernels", action="store_true",
+                        help="only time the NumPy path's kernels against pinocchio per batch")
     args = parser.parse_args(argv)
+    if args.kernels:
+        kernels_against_pinocchio()
+        return 0
 
     import fwdstep
     d = fwdstep.load_diagram(args.diagram, overrides={"t_final": args.t_final})
     step, log_every = d.spec.simulation.step, d.spec.simulation.log_every
-    hand = os.path.samefile(args.diagram, DIAGRAM)
+    slotine_li = os.path.basename(args.diagram) in SLOTINE_LI
+    hand = os.path.samefile(args.diagram, DIAGRAM) or slotine_li
+    loop = hand_loop_slotine_li if slotine_li else hand_loop
     print(f"{os.path.basename(args.diagram)}, {args.t_final:g} s at step {step:g}, "
           f"{d.spec.simulation.solver}, {d.n_states} states; {args.repeats} interleaved repeats")
     wall_f, wall_h, wall_c = [], [], []
     if args.compiled:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fwdstep.simulate(fwdstep.load_diagram(args.diagram, overrides={"t_final": 10 * step}),
                          backend="compiled")
         print(f"compile (or load from the cache) and a 10-step run: "
-              f"{time.perf_counter() - t0:.1f} s (not in the ratios)")
+              f"{time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s CPU "
+              f"(not in the ratios)")
     for _ in range(args.repeats):
         t0 = time.perf_counter()
         result = fwdstep.simulate(d)
@@ -127,7 +239,7 @@ def main(argv=None) -> int:
             wall_c.append(time.perf_counter() - t0)
         if hand:
             t0 = time.perf_counter()
-            _, e_hand = hand_loop(d, args.t_final, step, log_every)
+            _, e_hand = loop(d, args.t_final, step, log_every)
             wall_h.append(time.perf_counter() - t0)
     med_f = statistics.median(wall_f)
     print(f"fwdstep simulate : median {med_f:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_f)})")
@@ -146,6 +258,9 @@ def main(argv=None) -> int:
     med_h = statistics.median(wall_h)
     print(f"hand pinocchio   : median {med_h:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_h)})")
     print(f"ratio fwdstep / hand = {med_f / med_h:.2f}  (target <= 2)")
+    if args.compiled:
+        print(f"ratio compiled / hand = {statistics.median(wall_c) / med_h:.3f}  "
+              f"(issue 25 target <= 0.25)")
     print(f"final |Delta q| (largest joint): diagram {np.abs(e_diagram).max():.3e}, hand "
           f"{np.abs(e_hand).max():.3e}; they differ by {agreement:.1e} (same closed loop)")
     return 0

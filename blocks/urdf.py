@@ -9,14 +9,20 @@ reduction; ``parameters: base``).  The derivation of the regressor is in docs/ur
 
 pinocchio (PyPI ``pin``) and ``example-robot-data`` are the optional extra ``fwdstep[robots]``:
 without them this module still imports and registers its blocks (``fwdstep blocks`` lists them
-with an install hint), and building one raises a one-line ParameterError.  pinocchio's calls
-cannot run inside numba-compiled code: the compiled backend calls these blocks' methods through
-numba's object mode (``compile_with = "objmode"``, fwdstep/core/block.py).
+with an install hint), and building one raises a one-line ParameterError.
+
+Two implementations of the same equations, chosen per block and batch (``implementation``):
+pinocchio reads the URDF (always) and, on the NumPy path, computes aba and the regressor one
+variant at a time in C++; fwdstep's own kernels (blocks/rigid_body.py) are what the compiled
+backend traces into straight-line code for the robot (``compile_with = "traced"``), and what
+the NumPy path runs for large batches (every variant in one pass of array operations).  Both
+equal each other to ~1e-15 relative (tests/blocks/test_rigid_body.py).
 """
 from __future__ import annotations
 
 import functools
 import os
+import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
@@ -24,6 +30,9 @@ from fwdstep.core.block import Block, Param
 from fwdstep.core.errors import ParameterError
 from fwdstep.core.registry import register
 
+from . import rigid_body as rb
+from .rigid_body import forward_dynamics, frame_kinematics, regressor as christoffel_regressor
+from .nonlinear import friction_output
 from .robot import MechanicalPlant
 
 INSTALL_HINT = "install fwdstep[robots]"
@@ -111,6 +120,11 @@ def _load(path: str, locked: tuple, gravity: float):
     if unknown:
         names = ", ".join(full.names[1:])
         return f"has no joint {unknown[0]!r} to lock; joints are: {names}"
+    mimic = _mimic_joints(path)
+    free = [(j, m) for j, m in mimic if j not in locked]
+    if free:
+        return (f"'s joint {free[0][0]!r} mimics {free[0][1]!r} (<mimic>), which is not "
+                f"supported: lock it (locked_joints)")
     if locked:
         ids = [full.getJointId(j) for j in locked]
         model = pin.buildReducedModel(full, ids, pin.neutral(full))
@@ -134,6 +148,25 @@ def _load(path: str, locked: tuple, gravity: float):
     return model, data, model_no_gravity, model_no_gravity.createData()
 
 
+def _mimic_joints(path: str) -> list:
+    """[(joint, mimicked joint)] of the URDF's <mimic> elements."""
+    try:
+        root = ElementTree.parse(path).getroot()
+    except (ElementTree.ParseError, OSError):
+        return []
+    return [(j.get("name"), m.get("joint")) for j in root.iter("joint")
+            for m in j.findall("mimic")]
+
+
+@functools.lru_cache(maxsize=32)
+def rigid_body_model(path: str, locked: tuple, gravity: float):
+    """(structure (n, 17), theta (10 n), URDF damping (n), URDF friction (n)) of a loaded
+    robot, for the kernels of blocks/rigid_body.py."""
+    model = _load(path, locked, gravity)[0]
+    return (rb.tree_from_pinocchio(model), rb.theta_from_pinocchio(model),
+            np.array(model.damping, dtype=float), np.array(model.friction, dtype=float))
+
+
 def load_model(block, robot: str, urdf: str, locked_joints, gravity: float):
     """(model, data, model without gravity, its data) for a block's robot description, which
     is kept in ``block.robot_description`` (compared between plant and regressor)."""
@@ -142,7 +175,8 @@ def load_model(block, robot: str, urdf: str, locked_joints, gravity: float):
     block.robot_description = (path, locked, float(gravity))
     loaded = _load(path, locked, float(gravity))
     if isinstance(loaded, str):
-        raise ParameterError(f"block {block.name!r}: the robot {loaded}", block=block.name)
+        sep = "" if loaded.startswith("'s ") else " "
+        raise ParameterError(f"block {block.name!r}: the robot{sep}{loaded}", block=block.name)
     return loaded
 
 
@@ -211,15 +245,32 @@ def _robot_params():
         "robot": Param("str", "", "example-robot-data model: " + ", ".join(NAMED_ROBOTS)),
         "urdf": Param("str", "", "URDF file (absolute, or relative to the working directory); "
                                  "instead of 'robot'"),
-        "locked_joints": Param("any", None, "joint names fixed at the neutral configuration "
-                                            "(default: the named robot's, e.g. the Panda's "
-                                            "fingers; [] for none)"),
+        "locked_joints": Param("names", None, "joint names fixed at the neutral configuration "
+                                              "(default: the named robot's, e.g. the Panda's "
+                                              "fingers; [] for none)"),
         "gravity": Param("float", 9.81, "gravitational acceleration along -z of the base "
                                         "frame (m/s^2); 0: no gravity"),
         "parameters": Param("choice", "full", "theta: 'full' (10 per body) or 'base' (the "
                                               "identifiable reduction)",
                             choices=("full", "base")),
+        "implementation": Param("choice", "auto", "who computes the dynamics on the NumPy "
+                                                  "path: 'auto' (pinocchio below "
+                                                  f"{KERNELS_FROM_BATCH} variants, fwdstep's "
+                                                  "kernels from there), 'pinocchio' or "
+                                                  "'kernels'; compiled runs trace the kernels",
+                                choices=("auto", "pinocchio", "kernels")),
     }
+
+
+#: On the NumPy path, ``implementation: auto`` runs fwdstep's kernels for batches of at least
+#: this many variants and pinocchio (one C++ call per variant) below (measured:
+#: benchmarks/robots_benchmark.py --kernels).
+KERNELS_FROM_BATCH = 512
+
+
+def _uses_kernels(implementation: str, batch: int) -> bool:
+    return implementation == "kernels" or (implementation == "auto"
+                                           and batch >= KERNELS_FROM_BATCH)
 
 
 def _parameter_form(block, model, robot, urdf, locked_joints, gravity, parameters):
@@ -237,21 +288,56 @@ def _summary_with_hint(cls) -> str:
     return summary if available() else f"{summary} [{INSTALL_HINT}]"
 
 
+# ------------------------------------------------------------------------------ kernels
+def arm_output(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
+               velocity_scale, theta, friction):
+    """q, qdot, theta (the parameter vector in the block's form, constant)."""
+    n = x.shape[1] // 2
+    return x[:, :n], x[:, n:], theta
+
+
+def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
+                   velocity_scale, theta, friction):
+    """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) with tau_f of
+    the Friction block's law (blocks/nonlinear.py) when ``friction``."""
+    n = x.shape[1] // 2
+    q = x[:, :n]
+    qdot = x[:, n:]
+    torque = tau + tau_star
+    if friction:
+        torque = torque + friction_output(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+    qddot = forward_dynamics(tree, gravity, inertia, q, qdot, torque)
+    dx = np.empty((qddot.shape[0], 2 * n))
+    dx[:, :n] = qdot
+    dx[:, n:] = qddot
+    return dx
+
+
+# (the kernels call rigid_body's functions by name: the tracer rebinds a kernel's global
+# functions, not a module's attributes)
+def regressor_output(t, x, q, qdot, zeta, zetad, tree, gravity, columns):
+    """Y (B, n, p) of the wanted columns of the Christoffel regressor."""
+    return (christoffel_regressor(tree, gravity, columns, q, qdot, zeta, zetad),)
+
+
 @register
 class URDFArm(MechanicalPlant):
-    """Serial manipulator from URDF: H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star - tau_f.
+    """Serial manipulator from URDF: H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star + tau_f.
 
-    Equation (1) of the paper for any fixed-base chain of revolute/prismatic joints, computed by
-    pinocchio's articulated-body algorithm: qddot = aba(q, qdot, tau + tau_star - tau_f), with
-    joint friction tau_f = damping qdot + coulomb tanh(qdot / coulomb_velocity) (zero by
-    default; not part of the regressor).  The joints in ``locked_joints`` are fixed at the
-    neutral configuration and their bodies merged into their parents.  Output ``theta`` is the
-    robot's true parameter vector (constant), in the form of ``URDFRegressor`` with the same
-    ``parameters``, so a diagram can plot theta_hat against it.  ``tau_star`` is optional:
-    unconnected, it is zero.  State order: q (n), then qdot (n).  Compiled runs call it in
-    numba's object mode (pinocchio).
+    Equation (1) of the paper for any fixed-base chain (or tree) of revolute/prismatic
+    joints: qddot = H^-1 (tau + tau_star + tau_f - C qdot - g), computed by fwdstep's kernels
+    (blocks/rigid_body.py: composite rigid-body H, Newton-Euler bias, LDL^T solve; traced to
+    straight-line code by the compiled backend) or by pinocchio's aba (``implementation``).
+    Joint friction tau_f = -(coulomb tanh(qdot / coulomb_velocity) + damping qdot), the law of
+    the ``Friction`` block, is not part of the regressor; ``damping`` and ``coulomb`` default
+    to the URDF's ``<dynamics damping= friction=>``.  The joints in ``locked_joints`` are
+    fixed at the neutral configuration and their bodies merged into their parents; a
+    ``<mimic>`` joint must be locked.  Output ``theta`` is the robot's true parameter vector
+    (constant), in the form of ``URDFRegressor`` with the same ``parameters``, so a diagram
+    can plot theta_hat against it.  ``tau_star`` is optional: unconnected, it is zero.  State
+    order: q (n), then qdot (n).
 
-    Equation: (1), qddot = H^-1 (tau + tau_star - tau_f - C qdot - g) by pinocchio.aba.
+    Equation: (1), qddot = H^-1 (tau + tau_star + tau_f - C qdot - g).
 
     Ports:
         | port     | direction | shape | feedthrough |
@@ -267,67 +353,77 @@ class URDFArm(MechanicalPlant):
         locked_joints: joints to fix (default: the named robot's; [] for none).
         gravity: gravitational acceleration along -z of the base frame (default 9.81).
         parameters: 'full' (p = 10 n) or 'base' (identifiable reduction) for ``theta``.
-        damping, coulomb: viscous (N m s/rad) and Coulomb (N m) friction, one number or n.
+        implementation: 'auto', 'pinocchio' or 'kernels' (the NumPy path's choice).
+        damping, coulomb: viscous (N m s/rad) and Coulomb (N m) friction, one number or n
+        (default: the URDF's damping and friction).
         coulomb_velocity: velocity scale of the smoothed Coulomb term (rad/s, default 0.01).
         q0, qdot0: initial joint positions and velocities (one number or n numbers).
     """
 
     params = {
         **_robot_params(),
-        "damping": Param("array", 0.0, "viscous joint friction (N m s/rad): scalar or (n,)"),
-        "coulomb": Param("array", 0.0, "Coulomb joint friction (N m): scalar or (n,)"),
+        "damping": Param("array", None, "viscous joint friction (N m s/rad): scalar or (n,); "
+                                        "default: the URDF's <dynamics damping=>"),
+        "coulomb": Param("array", None, "Coulomb joint friction (N m): scalar or (n,); "
+                                        "default: the URDF's <dynamics friction=>"),
         "coulomb_velocity": Param("float", 0.01, "velocity scale of tanh in the Coulomb term"),
         "q0": Param("array", 0.0, "initial joint positions, scalar or (n,)"),
         "qdot0": Param("array", 0.0, "initial joint velocities, scalar or (n,)"),
     }
     example = {"robot": "ur5", "q0": [0.1, -1.0, 1.2, 0.0, 0.5, 0.0], "damping": 0.1}
     summary = classmethod(_summary_with_hint)
-    compile_with = "objmode"        # pinocchio: the compiled loop calls output/derivative
+    compile_with = "traced"         # compiled: the kernels traced; NumPy: see derivative
 
-    def setup(self, robot, urdf, locked_joints, gravity, parameters, damping, coulomb,
-              coulomb_velocity, q0, qdot0):
+    def setup(self, robot, urdf, locked_joints, gravity, parameters, implementation, damping,
+              coulomb, coulomb_velocity, q0, qdot0):
         from .robot import _vector_param
         self._pin = _pinocchio(self.name, self.type_name)
         self.model, self._data, _, _ = load_model(self, robot, urdf, locked_joints, gravity)
         n = self.model.nv
         self.declare_plant(n, q0, qdot0)
-        self.kernels = None          # output/derivative below (pinocchio), not the base's
         self.state_labels = [f"q_{j}" for j in self.model.names[1:]] + \
                             [f"qdot_{j}" for j in self.model.names[1:]]
         theta, _ = _parameter_form(self, self.model, robot, urdf, locked_joints, gravity,
                                    parameters)
         self.declare_output("theta", theta.shape, feedthrough=(), label=r"$\theta$")
         self.parameter_form = parameters
-        self.set_param("theta", theta)
         if coulomb_velocity <= 0.0:
             raise ParameterError(f"block {self.name!r} parameter 'coulomb_velocity' must be "
                                  f"positive, got {coulomb_velocity}", block=self.name)
-        damping = _vector_param(self, "damping", damping, n)
-        coulomb = _vector_param(self, "coulomb", coulomb, n)
+        tree, inertia, urdf_damping, urdf_friction = rigid_body_model(*self.robot_description)
+        damping = urdf_damping if damping is None else _vector_param(self, "damping", damping, n)
+        coulomb = urdf_friction if coulomb is None else _vector_param(self, "coulomb", coulomb,
+                                                                      n)
         if np.any(damping < 0.0) or np.any(coulomb < 0.0):
             raise ParameterError(f"block {self.name!r} parameters 'damping' and 'coulomb' must "
                                  f"not be negative", block=self.name)
-        self._damping, self._coulomb = damping, coulomb
-        self._friction = bool(np.any(damping) or np.any(coulomb))
-        self._coulomb_velocity = coulomb_velocity
-
-    def output(self, t, x, u):
-        n = self._n
-        return x[:, :n], x[:, n:], self.p.theta
-
-    def friction(self, qdot: np.ndarray) -> np.ndarray:
-        """tau_f = damping qdot + coulomb tanh(qdot / coulomb_velocity)."""
-        return self._damping * qdot + self._coulomb * np.tanh(qdot / self._coulomb_velocity)
+        self.implementation = implementation
+        self.set_param("tree", tree)
+        self.set_param("gravity", [float(gravity)])
+        self.set_param("inertia", inertia)
+        self.set_param("coulomb", coulomb)
+        self.set_param("viscous", damping)
+        self.set_param("velocity_scale", [coulomb_velocity])
+        self.set_param("theta", theta)
+        self.set_kernels(output=arm_output, derivative=arm_derivative,
+                         params=("tree", "gravity", "inertia", "coulomb", "viscous",
+                                 "velocity_scale", "theta"),
+                         static=(bool(np.any(damping) or np.any(coulomb)),))
 
     def derivative(self, t, x, u):
+        """The kernel, or pinocchio's aba one variant at a time (``implementation``)."""
+        B = max(x.shape[0], u[0].shape[0], u[1].shape[0])
+        if _uses_kernels(self.implementation, B):
+            return Block.derivative(self, t, x, u)
         n = self._n
+        p = self.p
         torque = u[0] + u[1]
-        B = max(x.shape[0], torque.shape[0])
+        if self.kernels.static[0]:
+            torque = torque + friction_output(t, x, x[:, n:], p.coulomb, p.viscous,
+                                              p.velocity_scale)[0]
         if B > 1:
             x = np.broadcast_to(x, (B, 2 * n))
             torque = np.broadcast_to(torque, (B, n))
-        if self._friction:
-            torque = torque - self.friction(x[:, n:])
         dx = np.empty((B, 2 * n))
         dx[:, :n] = x[:, n:]
         aba, model, data = self._pin.aba, self.model, self._data
@@ -342,9 +438,11 @@ class URDFRegressor(Block):
 
     Property 3 of the paper for ``URDFArm`` (same ``robot``/``urdf``, ``locked_joints``,
     ``gravity``), with C the Christoffel-symbol Coriolis matrix (so Hdot - 2C is
-    skew-symmetric, Property 2; it equals pinocchio's computeCoriolisMatrix).  Built from
-    pinocchio's joint-torque regressor R(q, v, a) (R theta = H a + C(q, v) v + g) by
-    polarization (docs/urdf-regressor.md, eq. (R)):
+    skew-symmetric, Property 2; it equals pinocchio's computeCoriolisMatrix).  Computed by
+    fwdstep's kernels (blocks/rigid_body.py: one Newton-Euler pass with the velocity products
+    of qdot and zeta symmetrised; traced to straight-line code by the compiled backend) or
+    from pinocchio's joint-torque regressor R(q, v, a) by polarization
+    (docs/urdf-regressor.md, eq. (R); ``implementation``):
 
         Y = R_g(q, (qdot + zeta)/2, zetad) - R_0(q, (qdot - zeta)/2, 0),
 
@@ -352,7 +450,6 @@ class URDFRegressor(Block):
     the joint origin], ``URDFArm``'s ``theta`` output); many are not identifiable (columns of Y
     that vanish or are combinations of others): ``parameters: base`` keeps the independent
     columns and the plant's ``theta`` becomes the base parameters beta with Y_base beta = Y theta.
-    Compiled runs call it in object mode (pinocchio).
 
     Equation: Property 3, Y theta = H zetad + C zeta + g (docs/urdf-regressor.md, eq. (R)).
 
@@ -367,14 +464,15 @@ class URDFRegressor(Block):
     Parameters:
         robot / urdf, locked_joints, gravity: the plant's (see ``URDFArm``).
         parameters: 'full' (p = 10 n) or 'base' (p = number of base parameters).
+        implementation: 'auto', 'pinocchio' or 'kernels' (the NumPy path's choice).
     """
 
     params = _robot_params()
     example = {"robot": "ur5"}
     summary = classmethod(_summary_with_hint)
-    compile_with = "objmode"        # pinocchio: the compiled loop calls output/derivative
+    compile_with = "traced"         # compiled: the kernels traced; NumPy: see output
 
-    def setup(self, robot, urdf, locked_joints, gravity, parameters):
+    def setup(self, robot, urdf, locked_joints, gravity, parameters, implementation):
         self._pin = _pinocchio(self.name, self.type_name)
         self.model, self._data, self.model0, self._data0 = load_model(self, robot, urdf,
                                                                       locked_joints, gravity)
@@ -385,6 +483,13 @@ class URDFRegressor(Block):
             self.declare_input(name, (n,))
         self.declare_output("Y", (n, theta.size), feedthrough=("q", "qdot", "zeta", "zetad"))
         self.parameter_form = parameters
+        self.implementation = implementation
+        tree = rigid_body_model(*self.robot_description)[0]
+        columns = np.arange(10 * n) if self._columns is None else self._columns
+        self.set_param("tree", tree)
+        self.set_param("gravity", [float(gravity)])
+        self.set_param("columns", columns)
+        self.set_kernels(output=regressor_output, params=("tree", "gravity", "columns"))
 
     def check_source(self, port, source, source_port):
         """At load time: the plant driving ``q`` must be the same robot, with the same locked
@@ -402,13 +507,16 @@ class URDFRegressor(Block):
         return None
 
     def output(self, t, x, u):
+        """The kernel, or pinocchio's regressor one variant at a time (``implementation``)."""
+        B = max(v.shape[0] for v in u)
+        if _uses_kernels(self.implementation, B):
+            return Block.output(self, t, x, u)
         q, qdot, zeta, zetad = u
         cols = self._columns
         args = (self._pin, self.model, self._data, self.model0, self._data0)
-        if len(q) == len(qdot) == len(zeta) == len(zetad) == 1:
+        if B == 1:
             Y = regressor(*args, q[0], qdot[0], zeta[0], zetad[0])
             return ((Y if cols is None else Y[:, cols])[None],)
-        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
         q, qdot, zeta, zetad = (np.broadcast_to(v, (B, self._n)) for v in u)
         p = self.outputs["Y"].shape[1]
         out = np.empty((B, self._n, p))
@@ -416,3 +524,67 @@ class URDFRegressor(Block):
             Y = regressor(*args, q[b], qdot[b], zeta[b], zetad[b])
             out[b] = Y if cols is None else Y[:, cols]
         return (out,)
+
+
+def frame_output(t, x, q, qdot, tree, frame):
+    """position, rotation, J, Jdot qdot of the block's frame (blocks/rigid_body.py)."""
+    return frame_kinematics(tree, frame, q, qdot)
+
+
+@register
+class URDFFrame(Block):
+    """Pose, Jacobian and Jdot qdot of a URDF frame: the task-space kinematics of a robot.
+
+    For the frame ``frame`` (a link or joint name of the URDF, e.g. the UR5's ``tool0`` or
+    the Panda's ``panda_hand``) of the robot described as for ``URDFArm``: its position p and
+    rotation R in the base frame, the Jacobian J with [pdot; omega] = J(q) qdot (velocity of
+    the frame's origin and angular velocity, base axes: pinocchio's LOCAL_WORLD_ALIGNED) and
+    Jdot qdot, the acceleration [pddot; omegadot] at qddot = 0, so that
+    [pddot; omegadot] = J qddot + Jdot qdot.  Computed by fwdstep's kernels
+    (blocks/rigid_body.py ``frame_kinematics``; traced in compiled runs).
+
+    Equation: p, R = FK(q); [pdot; omega] = J(q) qdot; [pddot; omegadot] = J qddot + Jdot qdot.
+
+    Ports:
+        | port      | direction | shape  | feedthrough |
+        | q         | in        | (n,)   | -           |
+        | qdot      | in        | (n,)   | -           |
+        | position  | out       | (3,)   | q           |
+        | rotation  | out       | (3, 3) | q           |
+        | J         | out       | (6, n) | q           |
+        | Jdot_qdot | out       | (6,)   | q, qdot     |
+
+    Parameters:
+        robot / urdf, locked_joints: the robot (see ``URDFArm``).
+        frame: the frame's name (a URDF link or joint).
+    """
+
+    params = {k: v for k, v in _robot_params().items()
+              if k in ("robot", "urdf", "locked_joints")}
+    params["frame"] = Param("str", doc="a URDF link or joint name (e.g. tool0, panda_hand)")
+    example = {"robot": "ur5", "frame": "tool0"}
+    summary = classmethod(_summary_with_hint)
+    compile_with = "traced"
+
+    def setup(self, robot, urdf, locked_joints, frame):
+        _pinocchio(self.name, self.type_name)
+        model = load_model(self, robot, urdf, locked_joints, 0.0)[0]
+        try:
+            placement = rb.frame_from_pinocchio(model, frame)
+        except KeyError:
+            names = ", ".join(f.name for f in model.frames if f.name != "universe")
+            raise ParameterError(f"block {self.name!r} parameter 'frame': the robot has no "
+                                 f"frame {frame!r} on a moving body; frames are: {names}"[:400],
+                                 block=self.name) from None
+        n = model.nv
+        self.declare_input("q", (n,))
+        self.declare_input("qdot", (n,))
+        self.declare_output("position", (3,), feedthrough=("q",), label="$p$", unit="m",
+                            components=["x", "y", "z"])
+        self.declare_output("rotation", (3, 3), feedthrough=("q",), label="$R$")
+        self.declare_output("J", (6, n), feedthrough=("q",), label="$J$")
+        self.declare_output("Jdot_qdot", (6,), feedthrough=("q", "qdot"),
+                            label=r"$\dot J \dot q$")
+        self.set_param("tree", rigid_body_model(*self.robot_description)[0])
+        self.set_param("frame", placement)
+        self.set_kernels(output=frame_output, params=("tree", "frame"))

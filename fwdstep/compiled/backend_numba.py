@@ -259,12 +259,19 @@ def refusal(block) -> str | None:
 
 def python_block(block) -> bool:
     """Whether the compiled loop calls ``block``'s methods through object mode
-    (``compile_with = "objmode"``, fwdstep/core/block.py) instead of jitting its kernels."""
+    (``compile_with = "objmode"``, fwdstep/core/block.py) instead of jitting its kernels; a
+    ``"traced"`` block's kernels are traced into the scalar stage, and only the array code
+    (a stage that does not trace) calls its methods through object mode."""
     how = type(block).compile_with
-    if how not in ("numba", "objmode"):
+    if how not in ("numba", "objmode", "traced"):
         raise ConfigError(f"block '{block.name}' ({block.type_name}): compile_with must be "
-                          f"'numba' or 'objmode', not {how!r}", block=block.name)
-    return how == "objmode"
+                          f"'numba', 'objmode' or 'traced', not {how!r}", block=block.name)
+    return how in ("objmode", "traced")
+
+
+def _traced_only(block) -> bool:
+    """A ``compile_with = "traced"`` block with kernels: the scalar stage traces them."""
+    return type(block).compile_with == "traced" and block.kernels is not None
 
 
 def _in_python(block) -> bool:
@@ -542,7 +549,7 @@ class _ScalarStage:
         block_args, group_y = {}, {}
         for kind, op, _ in ops:
             if kind == "call":
-                if _in_python(op.block):
+                if _in_python(op.block) and not _traced_only(op.block):
                     raise sz.Untraceable(f"block {op.block.name!r} runs in object mode")
                 k = op.block.kernels
                 block_args[id(op)] = [self._param(getattr(op.block.p, n))

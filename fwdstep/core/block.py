@@ -34,8 +34,10 @@ subset of NumPy that numba compiles (plus ``math`` and the batched helpers of
 ``Block.derivative`` below do); the compiled backend jits the very same functions and calls
 them from one generated loop.  A block whose numerics call a Python library numba cannot
 compile (pinocchio) sets ``compile_with = "objmode"``: the compiled loop then calls its
-ordinary ``output``/``derivative`` through numba's object mode.  A block that cannot run
-compiled at all says why in ``cannot_compile``; the compiled backend then refuses it by name.
+ordinary ``output``/``derivative`` through numba's object mode.  ``compile_with = "traced"``:
+kernels the compiled backend only traces into scalar code (``fwdstep.compiled.scalarize``; the robot
+blocks of blocks/urdf.py), object mode when the diagram's stage does not trace.  A block
+that cannot run compiled at all says why in ``cannot_compile``; the compiled backend then refuses it by name.
 """
 from __future__ import annotations
 
@@ -66,7 +68,8 @@ class Param:
     kind:
       ``float`` (scalar number), ``int`` (whole number), ``bool``, ``str`` (literal text),
       ``array`` (number, list or nested list -> float ndarray), ``choice`` (one of
-      ``choices``), ``any`` (passed through after expression evaluation).
+      ``choices``), ``names`` (a list of literal names, e.g. joints: a tuple of str),
+      ``any`` (passed through after expression evaluation).
     Numeric kinds accept expression strings, evaluated against the diagram's parameters.
     """
 
@@ -370,6 +373,14 @@ def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
         if not isinstance(value, str):
             raise bad("a string")
         return value
+    if kind == "names":
+        if value is None:
+            return None
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise bad("a list of names")
+        return tuple(value)
     if kind == "choice":
         if value not in decl.choices:
             raise ParameterError(

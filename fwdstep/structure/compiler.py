@@ -72,7 +72,7 @@ class CompiledDiagram:
 
 
 #: parameter kinds whose values may select code paths rather than numbers (never stacked)
-STRUCTURAL_KINDS = ("str", "choice", "bool", "int")
+STRUCTURAL_KINDS = ("str", "choice", "bool", "int", "names")
 
 
 def structure_signature(blocks: list) -> tuple:

@@ -38,6 +38,8 @@ def _param_schema(decl) -> dict:
         out = {"anyOf": [{"type": "boolean"}, EXPRESSION]}
     elif kind == "str":
         out = {"type": "string"}
+    elif kind == "names":
+        out = {"anyOf": [{"type": "array", "items": {"type": "string"}}, {"type": "string"}]}
     elif kind == "choice":
         out = {"enum": list(decl.choices)}
     else:

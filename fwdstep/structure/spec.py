@@ -340,7 +340,7 @@ class _Level:
                                      f"'{key}'; valid parameters are: "
                                      f"{', '.join(cls.params) or '(none)'}", file=file,
                                      line=kline, block=self.full(name))
-            if decl.kind in ("str", "choice"):
+            if decl.kind in ("str", "choice", "names"):
                 params[key] = value
             elif decl.kind == "bool" and isinstance(value, bool):
                 params[key] = value

@@ -16,6 +16,7 @@ from fwdstep.core.errors import ParameterError  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOTS = ("panda", "ur5")
+IMPLEMENTATIONS = ("pinocchio", "kernels")
 
 
 def reference_model(robot, gravity=9.81):
@@ -49,11 +50,13 @@ def regress(block, q, qdot, zeta, zetad):
 
 
 # ------------------------------------------------------------------------------ plant
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 @pytest.mark.parametrize("robot", ROBOTS)
-def test_plant_accelerations_are_pinocchio_aba_with_friction(robot):
+def test_plant_accelerations_are_pinocchio_aba_with_friction(robot, implementation):
     model, data = reference_model(robot)
     n = model.nv
-    arm = URDFArm("arm", robot=robot, damping=0.3, coulomb=[0.5] * n, coulomb_velocity=0.1)
+    arm = URDFArm("arm", robot=robot, damping=0.3, coulomb=[0.5] * n, coulomb_velocity=0.1,
+                  implementation=implementation)
     assert arm.outputs["q"].shape == (n,) and n == {"panda": 7, "ur5": 6}[robot]
     for q, v, tau, tau_star in points(n, 5, 1):
         dx = arm.derivative(0.0, np.concatenate([q, v])[None], (tau[None], tau_star[None]))[0]
@@ -76,7 +79,7 @@ def test_plant_batch_equals_single_runs_and_theta_is_the_inertias():
     for b in range(3):
         np.testing.assert_array_equal(
             batch[b], arm.derivative(0.0, x[b:b + 1], (tau[b:b + 1], np.zeros((1, 6))))[0])
-    q, qdot, theta = arm.output(0.0, x[:1], ())
+    q, qdot, theta = arm.output(0.0, x[:1], (tau[:1], np.zeros((1, 6))))
     np.testing.assert_array_equal(q, x[:1, :6])
     masses = theta[0].reshape(6, 10)[:, 0]
     np.testing.assert_allclose(masses, [model.inertias[j].mass for j in range(1, 7)])
@@ -84,8 +87,12 @@ def test_plant_batch_equals_single_runs_and_theta_is_the_inertias():
 
 
 def test_locked_joints_and_urdf_file():
-    panda_all = URDFArm("arm", robot="panda", locked_joints=[])
-    assert panda_all.outputs["q"].shape == (9,)
+    panda_8 = URDFArm("arm", robot="panda", locked_joints=["panda_finger_joint2"])
+    assert panda_8.outputs["q"].shape == (8,)
+    with pytest.raises(ParameterError, match=r"^block 'arm': the robot's joint "
+                       r"'panda_finger_joint2' mimics 'panda_finger_joint1' \(<mimic>\), which "
+                       r"is not supported: lock it \(locked_joints\)$"):
+        URDFArm("arm", robot="panda", locked_joints=[])
     relative = NAMED_ROBOTS["ur5"][0]
     by_file = URDFArm("arm", urdf=str(_robots_folder("t") / relative))
     by_name = URDFArm("arm", robot="ur5")
@@ -109,11 +116,12 @@ def test_bad_parameters_give_one_line_messages(params, message):
 
 
 # ------------------------------------------------------------------------------ regressor
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 @pytest.mark.parametrize("robot", ROBOTS)
-def test_regressor_is_H_zetad_plus_C_zeta_plus_g(robot):
+def test_regressor_is_H_zetad_plus_C_zeta_plus_g(robot, implementation):
     model, data = reference_model(robot)
     n = model.nv
-    Y = URDFRegressor("Y", robot=robot)
+    Y = URDFRegressor("Y", robot=robot, implementation=implementation)
     theta = URDFArm("arm", robot=robot).p.theta[0]
     assert Y.outputs["Y"].shape == (n, 10 * n)
     for q, qdot, zeta, zetad in points(n, 5, 3):
@@ -267,3 +275,158 @@ def test_a_regressor_that_does_not_match_its_plant_is_refused_at_load_time(tmp_p
         f"{diagram}:7: connection arm.q -> Y.q: the regressor's gravity (0.0) differs from "
         "the plant's (9.81); give both blocks the same robot, locked_joints, gravity and "
         "parameters")
+
+
+# ------------------------------------------------------- implementations, URDF dynamics, YAML
+ROBOT_DIAGRAMS = [pytest.param(p, id=p.stem, marks=() if p.stem == "panda_slotine_li"
+                               else pytest.mark.slow)
+                  for p in sorted((ROOT / "diagrams" / "robots").glob("*.yaml"))]
+
+
+@pytest.mark.parametrize("path", ROBOT_DIAGRAMS)
+def test_robot_diagrams_give_the_same_numbers_with_kernels_and_with_pinocchio(path):
+    """Every robot diagram, 20 steps on the NumPy path: fwdstep's kernels (blocks/rigid_body.py)
+    and pinocchio give the same logged signals to 1e-12 of their scale."""
+    import fwdstep
+    results = []
+    for impl in IMPLEMENTATIONS:
+        d = fwdstep.load_diagram(str(path), overrides={
+            "t_final": 0.02, "arm.implementation": impl, "Y.implementation": impl})
+        results.append(fwdstep.simulate(d))
+    ref, got = results
+    for name in ref.names:
+        scale = max(1.0, float(np.nanmax(np.abs(ref[name]))))
+        np.testing.assert_allclose(got[name], ref[name], rtol=0, atol=1e-12 * scale,
+                                   err_msg=name)
+
+
+def test_auto_runs_pinocchio_for_small_batches_and_the_kernels_for_large_ones(monkeypatch):
+    from fwdstep.blocks import urdf
+    arm = URDFArm("arm", robot="ur5")
+    assert arm.implementation == "auto"
+    assert not urdf._uses_kernels("auto", urdf.KERNELS_FROM_BATCH - 1)
+    assert urdf._uses_kernels("auto", urdf.KERNELS_FROM_BATCH)
+    assert urdf._uses_kernels("kernels", 1) and not urdf._uses_kernels("pinocchio", 10 ** 6)
+
+
+def _urdf_with_dynamics(path, damping, friction):
+    path.write_text(textwrap.dedent(f"""\
+        <?xml version="1.0"?>
+        <robot name="pendulum2">
+          <link name="base"/>
+          <link name="l1"><inertial><origin xyz="0.3 0 0"/><mass value="1.5"/>
+            <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.02" iyz="0" izz="0.03"/></inertial></link>
+          <link name="l2"><inertial><origin xyz="0.2 0.01 0"/><mass value="0.7"/>
+            <inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial></link>
+          <joint name="a" type="revolute"><parent link="base"/><child link="l1"/>
+            <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="5" velocity="3"/>
+            <dynamics damping="{damping[0]}" friction="{friction[0]}"/></joint>
+          <joint name="b" type="revolute"><parent link="l1"/><child link="l2"/>
+            <origin xyz="0.6 0 0"/><axis xyz="0 1 0"/>
+            <limit lower="-3" upper="3" effort="5" velocity="3"/>
+            <dynamics damping="{damping[1]}" friction="{friction[1]}"/></joint>
+        </robot>
+        """))
+    return str(path)
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_urdf_damping_and_friction_act_through_the_friction_law(tmp_path, implementation):
+    """<dynamics damping= friction=> are the plant's viscous and Coulomb friction (the law
+    of the Friction block: tau_f = -(F_c tanh(qdot / v_s) + F_v qdot)) unless given."""
+    from fwdstep.blocks.nonlinear import Friction
+    path = _urdf_with_dynamics(tmp_path / "p.urdf", (0.2, 0.05), (0.4, 0.1))
+    model = pin.buildModelFromUrdf(path)
+    model.gravity.linear = np.array([0.0, 0.0, -9.81])
+    data = model.createData()
+    arm = URDFArm("arm", urdf=path, coulomb_velocity=0.05, implementation=implementation)
+    law = Friction("f", n=2, coulomb=[0.4, 0.1], viscous=[0.2, 0.05], velocity_scale=0.05)
+    for q, v, tau, _ in points(2, 4, 9):
+        dx = arm.derivative(0.0, np.concatenate([q, v])[None], (tau[None], np.zeros((1, 2))))
+        tau_f = law.output(0.0, None, (v[None],))[0][0]
+        np.testing.assert_allclose(tau_f, -(np.array([0.4, 0.1]) * np.tanh(v / 0.05)
+                                            + np.array([0.2, 0.05]) * v), rtol=1e-15)
+        np.testing.assert_allclose(dx[0, 2:], pin.aba(model, data, q, v, tau + tau_f),
+                                   rtol=0, atol=1e-12)
+    none = URDFArm("arm", urdf=path, damping=0, coulomb=0, implementation=implementation)
+    q, v, tau, _ = next(points(2, 1, 9))
+    np.testing.assert_allclose(none.derivative(0.0, np.concatenate([q, v])[None],
+                                               (tau[None], np.zeros((1, 2))))[0, 2:],
+                               pin.aba(model, data, q, v, tau), rtol=0, atol=1e-12)
+
+
+def test_the_panda_urdf_damping_is_honoured():
+    arm = URDFArm("arm", robot="panda")
+    np.testing.assert_array_equal(arm.p.viscous[0], [0.003] * 7)
+    np.testing.assert_array_equal(arm.p.coulomb[0], [0.0] * 7)
+
+
+def test_locked_joints_are_written_in_yaml(tmp_path):
+    """``locked_joints: [name]`` and ``locked_joints: []`` are lists of names, not
+    expressions; the Panda's mimic finger must stay locked (one line)."""
+    import fwdstep
+    from fwdstep.core.errors import DiagramError
+
+    def diagram(locked):
+        path = tmp_path / "d.yaml"
+        n = 9 if locked == "[]" else 8
+        path.write_text(textwrap.dedent(f"""\
+            blocks:
+              arm: {{type: URDFArm, robot: panda, locked_joints: {locked}}}
+              tau: {{type: Constant, value: "zeros({n})"}}
+            connections:
+              - tau.y -> arm.tau
+            simulation: {{t_final: 0.002, step: 0.001}}
+            """))
+        return str(path)
+    d = fwdstep.load_diagram(diagram("[panda_finger_joint2]"))
+    arm = next(s.block for s in d.schedule if s.block.name == "arm")
+    assert arm.outputs["q"].shape == (8,)
+    with pytest.raises(DiagramError, match="block 'arm': the robot's joint 'panda_finger_joint2' "
+                                           "mimics 'panda_finger_joint1'"):
+        fwdstep.load_diagram(diagram("[]"))
+
+
+@pytest.mark.parametrize("name", ["panda_slotine_li", "ur5_theorem1"])
+def test_robot_diagrams_trace_to_a_scalar_stage(name):
+    """Compiled runs of the robot diagrams are straight-line code (the kernels traced, the
+    robot's structure folded in), not calls of pinocchio in object mode."""
+    pytest.importorskip("numba")
+    import llvmlite.binding as llvm
+
+    import fwdstep
+    from fwdstep.compiled import backend_numba as bn
+    from fwdstep.run.finite import unlogged_signals
+    from fwdstep.compiled.llvm_stage import stage_ir
+    d = fwdstep.load_diagram(str(ROOT / "diagrams" / "robots" / f"{name}.yaml"))
+    shapes = [tuple(s) for s in d.signal_shapes]
+    ops, fused = bn._ops_for(d.schedule, shapes, d.constant_signals)
+    st = bn._ScalarStage(d, shapes, ops, fused, d.constant_signals,
+                         [d.signal_index[n] for n in d.logged], unlogged_signals(d), 4)
+    assert 1000 < st.n_nodes < 8000
+    llvm.parse_assembly(stage_ir(st)).verify()
+
+
+def test_urdf_frame_block_is_pinocchio_s_task_space_kinematics():
+    from fwdstep.blocks.urdf import URDFFrame
+    model, data = reference_model("ur5")
+    fid = model.getFrameId("tool0")
+    blk = URDFFrame("ee", robot="ur5", frame="tool0")
+    assert blk.outputs["J"].shape == (6, 6)
+    assert blk.feedthrough("position") == ("q",)
+    for q, v, _, _ in points(6, 3, 11):
+        pos, rot, J, bias = (y[0] for y in blk.output(0.0, None, (q[None], v[None])))
+        pin.forwardKinematics(model, data, q, v, np.zeros(6))
+        pin.updateFramePlacements(model, data)
+        pin.computeJointJacobians(model, data, q)
+        np.testing.assert_allclose(pos, data.oMf[fid].translation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(rot, data.oMf[fid].rotation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(J, pin.getFrameJacobian(model, data, fid,
+                                                           pin.LOCAL_WORLD_ALIGNED),
+                                   rtol=0, atol=1e-12)
+        acc = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(bias, np.concatenate([acc.linear, acc.angular]), rtol=0,
+                                   atol=1e-12 * max(1.0, np.abs(bias).max()))
+    with pytest.raises(ParameterError, match="^block 'ee' parameter 'frame': the robot has "
+                                             "no frame 'hand' on a moving body; frames are: "):
+        URDFFrame("ee", robot="ur5", frame="hand")

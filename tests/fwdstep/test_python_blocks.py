@@ -203,7 +203,7 @@ def test_a_wrong_output_shape_names_block_port_and_shapes(leak):
                                "but declares (2, 2)")
 
 
-def test_compile_with_accepts_numba_or_objmode_only(leak):
+def test_compile_with_accepts_numba_objmode_or_traced_only(leak):
     from fwdstep.compiled import backend_numba
     d = fwdstep.load_diagram(leak)
     blk = _block(d, "f")
@@ -211,19 +211,23 @@ def test_compile_with_accepts_numba_or_objmode_only(leak):
     type(blk).compile_with = "python"
     try:
         with pytest.raises(ConfigError, match=r"^block 'f' \(ScipyLeak\): compile_with must be "
-                                              r"'numba' or 'objmode', not 'python'$"):
+                                              r"'numba', 'objmode' or 'traced', not "
+                                              r"'python'$"):
             backend_numba.refusal(blk)
     finally:
         type(blk).compile_with = "objmode"
 
 
-def test_the_pinocchio_blocks_opt_in():
+def test_the_robot_blocks_are_traced_and_fall_back_to_object_mode():
+    """URDFArm and URDFRegressor (blocks/urdf.py): their kernels are traced into the scalar
+    stage; the array code (a stage that does not trace) calls their methods in object mode."""
     pytest.importorskip("pinocchio")
     from fwdstep.compiled import backend_numba
     d = fwdstep.load_diagram(os.path.join(ROOT, "diagrams", "robots", "ur5_theorem1.yaml"))
     for name in ("arm", "Y"):
         blk = _block(d, name)
-        assert blk.compile_with == "objmode" and backend_numba.refusal(blk) is None
+        assert blk.compile_with == "traced" and backend_numba.refusal(blk) is None
+        assert backend_numba._in_python(blk) and backend_numba._traced_only(blk)
 
 
 # ---------------------------------------------------------------- slow: compiled runs
