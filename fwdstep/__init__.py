@@ -16,6 +16,7 @@ from .simulate import SimulationInterrupted, simulate
 from .compare import compare  # noqa: E402 - after .result: fwdstep.compare(runs) is the function
 from .sweep import SweepResult, run_sweep  # noqa: E402
 from .labelled import load_sweep  # noqa: E402
+from .animate import animate  # noqa: E402 - fwdstep.animate(r) is the function
 
 __all__ = [
     "load_diagram", "simulate", "compile_batch", "CompiledDiagram", "Result",
@@ -23,5 +24,6 @@ __all__ = [
     "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError", "ConfigError",
     "OutputError", "SimulationError", "DivergenceError", "BlockRuntimeError",
     "SimulationInterrupted", "load_result", "compare", "run_sweep", "SweepResult", "load_sweep",
+    "animate",
 ]
 __version__ = "0.1.0"

@@ -48,6 +48,10 @@ ANIMATION_FILE = "animation.html"
 _MARK = "<!-- written by fwdstep animate -->"
 
 
+class NoRobot(OutputError):
+    """The run's diagram has no plant block to draw (the report then shows no animation)."""
+
+
 class Animation(str):
     """The page's HTML (a str); shown inline in a notebook (an iframe holding the page)."""
 
@@ -81,7 +85,7 @@ def find_plant(diagram, result, where: str = "the run"):
     PLANT_TYPES; OutputError (one line) when there is none or its q was not logged."""
     plants = [b for b in diagram.blocks if b.type_name in PLANT_TYPES]
     if not plants:
-        raise OutputError(f"{where}: no robot to animate: the diagram has no block of type "
+        raise NoRobot(f"{where}: no robot to animate: the diagram has no block of type "
                           f"{', '.join(PLANT_TYPES)}")
     for b in plants:
         if f"{b.name}.q" in result.names:
@@ -530,8 +534,10 @@ def animate(result, fps: float = DISPLAY_FPS) -> Animation:
 
 
 def embed_html(page: str, height: int = 760) -> str:
-    """The page inside an iframe (srcdoc): for the report and notebooks."""
-    return (f'<iframe class="fw-animation" title="animation" sandbox="allow-scripts" '
+    """The page inside an iframe (srcdoc): for the report and notebooks.  Not sandboxed:
+    in a sandbox's opaque origin chromium does not run the 3-D view (three.js's data:
+    modules), and the page is fwdstep's own (every label escaped)."""
+    return (f'<iframe class="fw-animation" title="animation" '
             f'style="width:100%;height:{height}px;border:1px solid #ccc" '
             f'srcdoc="{html.escape(page, quote=True)}"></iframe>')
 
@@ -540,10 +546,9 @@ def report_section(result, run_dir: str) -> list:
     """The report's "Animation" section (fwdstep.report): the page in an iframe, a one-line
     note when the run cannot be animated, nothing when its diagram has no robot."""
     try:
-        r, d = _load_run(run_dir)
-        if not any(b.type_name in PLANT_TYPES for b in d.blocks):
-            return []
         page = animation_html([run_dir])
+    except NoRobot:
+        return []
     except FwdstepError as exc:
         return ["<h2>Animation</h2>", f"<p>{html.escape(one_line(str(exc)))}</p>"]
     except ImportError as exc:               # pinocchio missing for a URDF arm

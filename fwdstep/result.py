@@ -146,6 +146,12 @@ class Result:
             return result_figures(self, variants, [figure])[figure]
         return result_figures(self, variants)
 
+    def animate(self, fps: float = 30.0):
+        """The robot of this run replayed: one self-contained HTML page (a str; shown inline
+        in a notebook), the plant's q logged (``fwdstep.animate``)."""
+        from .animate import animate
+        return animate(self, fps=fps)
+
     def _repr_html_(self) -> str:
         from .report import result_summary_html
         return result_summary_html(self)
