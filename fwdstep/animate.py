@@ -480,8 +480,8 @@ def page_html(runs: list, meshes: list, title: str) -> str:
             "</select></label><label><input id=\"fw-loop\" type=\"checkbox\" checked> loop"
             "</label></div><canvas id=\"fw-plot\"></canvas>"
             f"<p class=\"fw-note\" id=\"fw-note\"></p><p class=\"fw-note\">{licence} "
-            + ("Drag to turn the view, scroll to zoom; " if data["kind"] == "urdf" else "")
-            + "the slider, space and the arrow keys move in time; a "
+            + ("Drag to turn the view, scroll to zoom. " if data["kind"] == "urdf" else "")
+            + "The slider, space and the arrow keys move in time; a "
             "click on a plot jumps there; #t=SECONDS in the address opens the page paused "
             "at that time.</p></div>"
             f"<script type=\"application/json\" id=\"fwdstep-data\">{payload}</script>"

@@ -47,11 +47,18 @@ const legend = document.getElementById("fw-legend");
 legend.innerHTML = runs.map((r) =>
   `<span class="sw" style="background:${r.color}"></span>${esc(r.label)} — ${esc(r.plant)}` +
   (r.status !== "ok" ? ` <b style="color:#c0392b">[${esc(r.status)}]</b>` : "")).join("") +
-  (runs.some((r) => r.desired) ? '<span class="sw" style="background:#2ca02c;opacity:.45">' +
-   "</span>desired q<sub>d</sub> (ghost, end-effector path dashed)" : "");
+  (!runs.some((r) => r.desired) ? "" : runs.length === 1 ?
+   '<span class="sw" style="background:#2ca02c;opacity:.45"></span>desired q<sub>d</sub> ' +
+   "(ghost, end-effector path dashed)" :
+   "<br>light and dashed: each run's desired q<sub>d</sub> (ghost, end-effector path)");
 document.getElementById("fw-note").textContent = runs.map((r) =>
   `${r.label}: ${r.F} frames of the logged ${r.q_signal} (${r.kind === "urdf" ?
     r.robot + ", end effector " + r.ee_frame : r.plane})`).join("; ");
+
+// the desired motion: green for one run, each run's own colour (light) for an overlay
+const ghostColour = (r, alpha) => runs.length === 1 ? `rgba(44,160,44,${alpha})` :
+  `rgba(${parseInt(r.color.slice(1, 3), 16)},${parseInt(r.color.slice(3, 5), 16)},` +
+  `${parseInt(r.color.slice(5, 7), 16)},${alpha})`;
 
 function esc(s) {
   return String(s).replace(/[&<>"]/g, (c) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;",
@@ -143,15 +150,16 @@ class PlanarView {
     let drawn = null;
     runs.forEach((r, i) => {
       const P = r.points.shape[1], k = ks[i];
-      if (r.ghost && r.links) {          // the desired tip path, whole run, dashed
-        ctx.strokeStyle = "rgba(44,160,44,0.7)"; ctx.lineWidth = 1.5 * this.dpr;
+      const paths = r.links || P === 1;  // an arm's tip, or a single point mass
+      if (r.ghost && paths) {            // the desired tip path, whole run, dashed
+        ctx.strokeStyle = ghostColour(r, 0.7); ctx.lineWidth = 1.5 * this.dpr;
         ctx.setLineDash([6 * this.dpr, 5 * this.dpr]); this.path(ctx, r.ghost, k, P, r.F - 1, 0);
         ctx.setLineDash([]);
       }
       ctx.strokeStyle = r.color; ctx.globalAlpha = 0.55; ctx.lineWidth = 1.5 * this.dpr;
-      if (r.links) this.path(ctx, r.points, k, P, k, 0);   // the tip's trail up to now
+      if (paths) this.path(ctx, r.points, k, P, k, 0);     // the tip's trail up to now
       ctx.globalAlpha = 1;
-      if (r.ghost) this.arm(ctx, r.ghost, k, P, r.links, "rgba(44,160,44,0.45)", w,
+      if (r.ghost) this.arm(ctx, r.ghost, k, P, r.links, ghostColour(r, 0.4), w,
                             [4 * this.dpr, 4 * this.dpr]);
     });
     runs.forEach((r, i) => {
@@ -239,7 +247,8 @@ async function urdfView(host) {
     scene.add(tip);
     return {meshes: make(solid, true), ghost: r.ghost && runs.length === 1 ? make(ghost) : null,
             trail: line(r.ee, new THREE.Color(r.color), false),
-            desired: r.ee_desired ? line(r.ee_desired, 0x2ca02c, true) : null, tip};
+            desired: r.ee_desired ? line(r.ee_desired, runs.length === 1 ? 0x2ca02c :
+                                         new THREE.Color(r.color), true) : null, tip};
   });
 
   const dir = new THREE.Vector3(1.45, -1.25, 0.75).normalize();
