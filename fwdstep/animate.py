@@ -68,16 +68,33 @@ def _load_run(outdir: str):
     from .compiler import load_diagram
     from .result import load_result
     r = load_result(outdir)
-    path = r.stored.get("diagram")
-    if not path or not os.path.isfile(path):
-        raise OutputError(f"{outdir}: the run's diagram file {path} is not here; animate needs "
-                          "it for the robot's geometry")
+    path = _diagram_file(r.stored.get("diagram"), outdir)
+    if path is None:
+        raise OutputError(f"{outdir}: the run's diagram file {r.stored.get('diagram')} is not "
+                          "here; animate needs it for the robot's geometry (run fwdstep animate "
+                          "in the directory fwdstep run ran in)")
     params = r.stored.get("parameters")
     try:
         d = load_diagram(path, params if isinstance(params, dict) else None)
     except FwdstepError:
         d = load_diagram(path)
     return r, d
+
+
+def _diagram_file(path, outdir: str):
+    """The diagram file summary.json names (relative to where fwdstep run ran): as written,
+    else under one of the run directory's parents; None when not found."""
+    if not path:
+        return None
+    if os.path.isfile(path):
+        return path
+    if not os.path.isabs(path):
+        folder = os.path.abspath(outdir)
+        while os.path.dirname(folder) != folder:
+            folder = os.path.dirname(folder)
+            if os.path.isfile(os.path.join(folder, path)):
+                return os.path.join(folder, path)
+    return None
 
 
 def find_plant(diagram, result, where: str = "the run"):

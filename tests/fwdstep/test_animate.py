@@ -189,6 +189,18 @@ def test_q_not_logged_is_one_line_exit_2(tmp_path, capsys):
     assert not (tmp_path / "a.html").exists()
 
 
+def test_default_output_and_foreign_files(two_link_run, tmp_path, capsys):
+    assert main(["animate", two_link_run]) == 0
+    assert os.path.isfile(os.path.join(two_link_run, "animation.html"))
+    with open(os.path.join(two_link_run, "manifest.json")) as fh:
+        assert "animation.html" in json.load(fh)["files"]      # owned like the run's files
+    foreign = tmp_path / "notes.html"
+    foreign.write_text("mine")
+    capsys.readouterr()
+    assert main(["animate", two_link_run, "-o", str(foreign)]) == 2
+    assert "refusing" in capsys.readouterr().err and foreign.read_text() == "mine"
+
+
 def test_result_animate_and_report(two_link_run):
     d = fwdstep.load_diagram(THEOREM1, {"t_final": 0.5})
     page = fwdstep.simulate(d).animate()
