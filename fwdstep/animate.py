@@ -41,6 +41,9 @@ DISPLAY_FPS = 30
 #: triangles kept per mesh (vertex clustering above this): the Panda's meshes (at most 21620)
 #: pass whole; clustering shows at 6000 (facets, dark seams)
 MAX_TRIANGLES = 25000
+#: bytes of poses per run at most (a long URDF run keeps fewer frames): with three.js and the
+#: Panda's meshes (3.3 MB in the page) a page stays under 20 MB
+MAX_POSE_BYTES = 10_000_000
 #: points per time-plot series (every k-th logged sample above this)
 MAX_PLOT_POINTS = 1500
 RUN_COLOURS = ("#1f6fb4", "#f07f0e", "#8e44ad", "#16a085")
@@ -361,8 +364,7 @@ class MeshStore:
         return self.keys[key]
 
 
-def _urdf_run(plant, q, qd, idx, store: MeshStore) -> dict:
-    scene = URDFScene(plant)
+def _urdf_run(scene: URDFScene, plant, q, qd, idx, store: MeshStore) -> dict:
     poses, ee = scene.poses(q[idx])
     out = {"geoms": scene.meshes(store), "poses": _pack(poses), "ee": _pack(ee),
            "ee_frame": scene.model.frames[scene.ee_frame].name,
@@ -395,12 +397,19 @@ def run_data(result, diagram, label: str, fps: float = DISPLAY_FPS,
         if not np.all(np.isfinite(qd)):
             qd = None
     idx = frame_indices(t, fps)
+    scene = URDFScene(plant) if plant.type_name == "URDFArm" else None
+    if scene is not None:            # 12 float64 per geometry and frame, twice with a ghost
+        per_frame = 96 * scene.geom.ngeoms * (2 if qd is not None else 1)
+        if len(idx) * per_frame > MAX_POSE_BYTES:          # a long run: fewer frames
+            keep = np.linspace(0, len(idx) - 1, MAX_POSE_BYTES // per_frame).round()
+            idx = idx[np.unique(keep.astype(int))]
     out = {"label": label, "plant": f"{plant.name} ({plant.type_name})", "q_signal": qname,
            "t": _pack(t[idx]), "q": _pack(q[idx]), "n": int(q.shape[1]),
            "desired": qd is not None, "status": getattr(result, "status", "ok")}
-    if plant.type_name == "URDFArm":
+    if scene is not None:
         out["kind"] = "urdf"
-        out.update(_urdf_run(plant, q, qd, idx, store if store is not None else MeshStore()))
+        out.update(_urdf_run(scene, plant, q, qd, idx,
+                             store if store is not None else MeshStore()))
     else:
         out["kind"] = "planar"
         out.update(_planar_run(plant, q, qd, idx))
