@@ -210,6 +210,16 @@ async function urdfView(host) {
   const axes = new THREE.AxesHelper(0.15);
   scene.add(axes);
 
+  function setPose(meshes, a, k) {      // frame k's [R p] rows of every geometry
+    const G = a.shape[1];
+    meshes.forEach((m, g) => {
+      if (!m) return;
+      const o = (k * G + g) * 12;
+      m.matrix.set(a[o], a[o + 1], a[o + 2], a[o + 3], a[o + 4], a[o + 5], a[o + 6], a[o + 7],
+                   a[o + 8], a[o + 9], a[o + 10], a[o + 11], 0, 0, 0, 1);
+      m.matrixWorldNeedsUpdate = true;
+    });
+  }
   const objects = runs.map((r, i) => {
     const solid = runs.length === 1 ?
       new THREE.MeshStandardMaterial({color: 0xe4e6ea, roughness: 0.55, metalness: 0.05}) :
@@ -251,10 +261,19 @@ async function urdfView(host) {
                                          new THREE.Color(r.color), true) : null, tip};
   });
 
+  // the camera sees every mesh at the start, middle and end of each run
+  runs.forEach((r, i) => {
+    for (const k of [0, r.F >> 1, r.F - 1]) {
+      setPose(objects[i].meshes, r.poses, k);
+      for (const m of objects[i].meshes) if (m) box.expandByObject(m);
+    }
+  });
+  const sphere = box.getBoundingSphere(new THREE.Sphere());
   const dir = new THREE.Vector3(1.45, -1.25, 0.75).normalize();
-  camera.position.copy(centre).addScaledVector(dir, size * 1.3);
+  const fit = sphere.radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2));
+  camera.position.copy(sphere.center).addScaledVector(dir, 0.68 * fit);   // the sphere is loose
   const controls = new OrbitControls(camera, renderer.domElement);
-  controls.target.copy(centre);
+  controls.target.copy(sphere.center);
   controls.update();
   const view = {
     ks: runs.map(() => 0),
@@ -265,16 +284,7 @@ async function urdfView(host) {
       camera.updateProjectionMatrix();
       this.render();
     },
-    pose(meshes, a, k) {
-      const G = a.shape[1];
-      meshes.forEach((m, g) => {
-        if (!m) return;
-        const o = (k * G + g) * 12;
-        m.matrix.set(a[o], a[o + 1], a[o + 2], a[o + 3], a[o + 4], a[o + 5], a[o + 6], a[o + 7],
-                     a[o + 8], a[o + 9], a[o + 10], a[o + 11], 0, 0, 0, 1);
-        m.matrixWorldNeedsUpdate = true;
-      });
-    },
+    pose: setPose,
     draw(ks) {
       this.ks = ks;
       runs.forEach((r, i) => {
@@ -427,15 +437,22 @@ function setTime(t) {
   document.title = `${D.title} — t = ${S.t.toFixed(3)} s`;
 }
 
+// frames are requested only while playing: a paused page is idle (and a headless browser
+// taking its screenshot is not kept busy)
+let last = null, ticking = false;
 function setPlaying(on) {
   S.playing = on;
   play.innerHTML = on ? "&#10074;&#10074;" : "&#9654;";
   document.body.dataset.playing = on ? "1" : "0";
+  if (on && !ticking && S.started) {
+    ticking = true; last = null;
+    requestAnimationFrame(tick);
+  }
 }
 
-let last = null;
 function tick(now) {
-  if (S.playing && last !== null) {
+  if (!S.playing) { ticking = false; return; }
+  if (last !== null) {
     let t = S.t + (now - last) / 1000 * S.speed;
     if (t > T1) {
       if (S.loop) t = T0; else { t = T1; setPlaying(false); }
@@ -496,6 +513,7 @@ async function main() {
   window.addEventListener("hashchange", fromHash);
   document.body.dataset.ready = "1";
   document.body.dataset.readyMs = String(Math.round(performance.now()));
-  requestAnimationFrame(tick);
+  S.started = true;
+  setPlaying(S.playing);
 }
 main();

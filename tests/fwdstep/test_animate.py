@@ -7,6 +7,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 
 import numpy as np
@@ -223,12 +224,20 @@ def _chromium(tmp_path, url: str, *what: str) -> str:
             "--disable-background-networking", "--disable-component-update", "--disable-sync",
             f"--user-data-dir={profile}", "--hide-scrollbars", "--window-size=1100,900",
             "--virtual-time-budget=3000", *what, url]
-    done = subprocess.run(args, capture_output=True, text=True, timeout=120)
-    return done.stdout
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+                            start_new_session=True)      # its own group: ended whole
+    try:
+        return proc.communicate(timeout=60)[0]
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        return ""
 
 
 def _state(tmp_path, page: str, t: float) -> dict:
     dom = _chromium(tmp_path, f"file://{page}#t={t}", "--dump-dom")
+    if 'data-ready="1"' not in dom:                     # a busy machine: once more
+        dom = _chromium(tmp_path, f"file://{page}#t={t}", "--dump-dom")
     body = re.search(r"<body([^>]*)>", dom).group(1)
     attrs = dict(re.findall(r'data-([a-z-]+)="([^"]*)"', body))
     return {k: json.loads(v.replace("&quot;", '"')) for k, v in attrs.items()}
@@ -237,7 +246,10 @@ def _state(tmp_path, page: str, t: float) -> dict:
 def _screenshot(tmp_path, page: str, t: float) -> np.ndarray:
     from matplotlib.image import imread
     png = tmp_path / f"shot-{t}.png"
-    _chromium(tmp_path, f"file://{page}#t={t}", f"--screenshot={png}")
+    for _ in range(2):                                  # a busy machine: once more
+        _chromium(tmp_path, f"file://{page}#t={t}", f"--screenshot={png}")
+        if png.exists():
+            break
     return imread(str(png))
 
 
