@@ -30,6 +30,7 @@ _PUBLIC = {
     "linearize": "fwdstep.analysis.linearize",
     "linearize_along": "fwdstep.analysis.linearize",
     "LinearModel": "fwdstep.analysis.linearize",
+    "animate": "fwdstep.views.animate",
 }
 _ERRORS = ("FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
            "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError",

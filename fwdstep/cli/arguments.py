@@ -159,6 +159,14 @@ def _add_results_commands(sub, run) -> None:
                      help="a directory written by fwdstep run or fwdstep sweep")
     rep.add_argument("-o", "--output", default=None,
                      help="the HTML file (default: RUN_DIR/report.html)")
+    ani = sub.add_parser("animate", help="replay the robot of a run (or two, overlaid) in one "
+                                         "self-contained HTML page (3-D for URDF arms)")
+    ani.add_argument("runs", nargs="+", metavar="RUN_DIR",
+                     help="run directories written by fwdstep run (their plant's q logged)")
+    ani.add_argument("-o", "--output", default=None,
+                     help="the HTML file (default: RUN_DIR/animation.html)")
+    ani.add_argument("--fps", type=float, default=30.0,
+                     help="frames per second of simulated time kept (default 30)")
     cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "
                                          "differences and a metrics table")
     cmp.add_argument("runs", nargs="+", metavar="RUN_DIR",
@@ -193,6 +201,9 @@ def _results_command(args):
     if args.command == "report":
         from fwdstep.cli.verbs import cmd_report
         return cmd_report(args.run_dir, args.output)
+    if args.command == "animate":
+        from fwdstep.cli.verbs import cmd_animate
+        return cmd_animate(args.runs, args.output, args.fps)
     if args.command == "compare":
         from fwdstep.cli.verbs import cmd_compare
         return cmd_compare(args.runs, args.outdir, args.signal, args.figure_format)

@@ -18,11 +18,13 @@ from fwdstep.cli.commands import (EXIT_BLOCK, EXIT_DIVERGED, EXIT_INPUT, EXIT_IN
 from fwdstep.core.errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
                                  OutputError, SimulationError, one_line, printable)
 from fwdstep.structure.compiler import load_diagram
+from fwdstep.results.animate import ANIMATION_FILE, DISPLAY_FPS, write_page
 from fwdstep.results.outputs import OutputDir
 from fwdstep.results.sweep_format import CSV_FILE, PARTS_DIR
 from fwdstep.structure.schema import schema_text
 from fwdstep.structure.spec import parse_override
 from fwdstep.sweeps.sweep import DEFAULT_MAX_MEMORY, parse_grid, parse_random, run_sweep
+from fwdstep.views.animate import animate
 from fwdstep.views.compare import compare
 from fwdstep.views.drawing import diagram_for_drawing, draw_diagram
 from fwdstep.views.report import write_report
@@ -260,4 +262,31 @@ def cmd_linearize(path: str, inputs, outputs, at: float = 0.0, open_=None, along
                  f"{margins['phase_margin_deg']:.3g} deg")
     print(line)
     print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
+    return 0
+
+
+# ---------------------------------------------------------------------------- animate
+def cmd_animate(run_dirs: list, output: str | None = None, fps: float = DISPLAY_FPS) -> int:
+    """``fwdstep animate RUN_DIR [RUN_DIR2] [-o FILE.html]``: exit 0, or 2 with one line."""
+    try:
+        page = animate(list(run_dirs), fps=fps)
+        if output is None:
+            with OutputDir(run_dirs[0], force=True, expected=[ANIMATION_FILE]) as out:
+                with open(os.path.join(out.dir, ANIMATION_FILE), "w", encoding="utf-8") as fh:
+                    fh.write(page)
+                out.commit()
+            output = os.path.join(run_dirs[0], ANIMATION_FILE)
+        else:
+            write_page(page, output)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"fwdstep: cannot write the animation: {one_line(str(exc))}", file=sys.stderr)
+        return 2
+    except ImportError as exc:
+        print(f"fwdstep: animate needs {exc.name or exc} for this robot: install "
+              "fwdstep[robots]", file=sys.stderr)
+        return 2
+    print(f"wrote {output} ({len(page.encode()) / 1e6:.1f} MB)")
     return 0

@@ -148,6 +148,12 @@ class Result:
             return result_figures(self, variants, [figure])[figure]
         return result_figures(self, variants)
 
+    def animate(self, fps: float = 30.0):
+        """The robot of this run replayed: one self-contained HTML page (a str; shown inline
+        in a notebook), the plant's q logged (``fwdstep.animate``)."""
+        from fwdstep.results.animate import animation_html
+        return animation_html([self], fps=fps)
+
     def _repr_html_(self) -> str:
         """A short summary for notebooks: status, time reached, metrics, signals."""
         m = self.metrics()

@@ -137,6 +137,7 @@ def report_html(run_dir: str) -> str:
         parts.append("<h2>Metrics</h2>")
         m = s.get("metrics")
         parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
+        parts += _animation(r, run_dir)
         parts.append("<h2>Figures</h2>")
         parts += _figures(r, run_dir)
         parts.append("<h2>Signals recorded</h2>")
@@ -201,6 +202,12 @@ def _sweep_extras(run_dir: str, has_run: bool) -> list:
                    f"<figcaption>{len(picked)} of {len(runs)} saved variants, differences "
                    f"against {html.escape(picked[0].label)}</figcaption></figure>")
     return out
+
+
+def _animation(result, run_dir: str) -> list:
+    """The run's robot replayed beside the figures (fwdstep.animate): [] without a robot."""
+    from fwdstep.views.animate import report_section
+    return report_section(result, run_dir)
 
 
 def _figures(result, run_dir: str) -> list:
