@@ -83,32 +83,12 @@ def structure_signature(blocks: list) -> tuple:
     return tuple(_block_signature(b) for b in blocks)
 
 
-class _Signature:
-    """One block's signature: a nested tuple, with its hash computed once (Python does not
-    keep a tuple's hash, and a sweep hashes every variant's signatures to group them)."""
-    __slots__ = ("key", "_hash")
-
-    def __init__(self, key: tuple):
-        self.key = key
-        self._hash = hash(key)
-
-    def __hash__(self) -> int:
-        return self._hash
-
-    def __eq__(self, other) -> bool:
-        return self is other or (isinstance(other, _Signature) and self._hash == other._hash
-                                 and self.key == other.key)
-
-    def __repr__(self) -> str:
-        return repr(self.key)
-
-
 #: block -> its signature; blocks are descriptions that never change after setup, and a
 #: sweep shares one instance between the variants that agree on it
 _signatures: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
-def _block_signature(b) -> "_Signature":
+def _block_signature(b) -> tuple:
     try:
         return _signatures[b]
     except (KeyError, TypeError):
@@ -118,11 +98,11 @@ def _block_signature(b) -> "_Signature":
         (k, repr(v)) for k, v in getattr(b, "values", {}).items()
         if k in decls and decls[k].kind in STRUCTURAL_KINDS
         and k not in getattr(type(b), "stacked_params", ())))
-    sig = _Signature((b.name, type(b).__name__, b.n_states,
-                      tuple((p.name, p.shape) for p in b.inputs.values()),
-                      tuple((p.name, p.shape) for p in b.outputs.values()),
-                      tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
-                      structural, setup_state(b)))
+    sig = (b.name, type(b).__name__, b.n_states,
+           tuple((p.name, p.shape) for p in b.inputs.values()),
+           tuple((p.name, p.shape) for p in b.outputs.values()),
+           tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
+           structural, setup_state(b))
     try:
         _signatures[b] = sig
     except TypeError:                  # a block type that cannot be weakly referenced

@@ -54,11 +54,9 @@ Python: ``run_sweep(path, grid={"ell": [1, 2, 3]}, ...)`` returns a ``SweepResul
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import functools
-import gc
 import glob
 import io
 import json
@@ -469,16 +467,15 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
         if name in overrides:
             raise ConfigError(f"parameter '{name}' is both swept and set with --set")
     specs, blocks = [], []
-    with _collector_paused():
-        for values in all_values:
-            try:
-                spec, built = loader.load(values)
-                blocks.append(built)
-            except DiagramError as exc:
-                shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
-                raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
-                                line=exc.line, block=exc.block, port=exc.port) from None
-            specs.append(spec)
+    for values in all_values:
+        try:
+            spec, built = loader.load(values)
+            blocks.append(built)
+        except DiagramError as exc:
+            shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
+            raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
+                            line=exc.line, block=exc.block, port=exc.port) from None
+        specs.append(spec)
     table = [Variant(i, values) for i, values in enumerate(all_values)]
     compiled = any(s.simulation.backend == "compiled" for s in specs)
     if compiled:
@@ -489,10 +486,9 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
     if own_client:
         client = dask_client(scheduler)
     try:
-        with _variants_frozen():
-            return _run_planned(path, names, all_values, specs, blocks, base, table, client,
-                                workers, sequential, max_memory, batch_size, outdir, resume,
-                                keep_signals, progress, wall0)
+        return _run_planned(path, names, all_values, specs, blocks, base, table, client,
+                            workers, sequential, max_memory, batch_size, outdir, resume,
+                            keep_signals, progress, wall0)
     finally:
         if own_client:
             client.close()
@@ -550,38 +546,6 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
                 v.status = "interrupted"
     result.wall_time = time.perf_counter() - wall0
     return result
-
-
-@contextlib.contextmanager
-def _collector_paused():
-    """Python's cyclic garbage collector off while the variants are derived and planned:
-    they are thousands of long-lived objects made at once, which the collector would
-    traverse again and again.  Nothing is lost: cycles made meanwhile are collected once it
-    is back on."""
-    was = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was:
-            gc.enable()
-
-
-@contextlib.contextmanager
-def _variants_frozen():
-    """The variants' specs and blocks (alive for the whole sweep) kept out of the garbage
-    collector's passes while the batches run (``gc.freeze``): otherwise every collection of
-    the older generations traverses them all again (at 2048 variants, 20 % of everything
-    but the integration).  Undone at the end (``gc.unfreeze``: they can be freed as usual);
-    skipped when the process had frozen objects of its own, which unfreeze would release."""
-    mine = gc.get_freeze_count() == 0
-    if mine:
-        gc.freeze()
-    try:
-        yield
-    finally:
-        if mine:
-            gc.unfreeze()
 
 
 def _need_numba(path: str) -> None:

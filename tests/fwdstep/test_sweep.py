@@ -391,34 +391,3 @@ def test_batch_metrics_are_each_variants_own():
          np.abs(e[tail, 0]).max()], rtol=1e-14)
     assert np.isnan(batch[1]["rms_error_norm"]) and batch[2]["error_norm_max"] == np.inf
     assert batch[3]["final_error_norm"] == pytest.approx(1e308 * np.sqrt(2), rel=1e-14)
-
-
-def test_the_garbage_collector_is_left_as_it_was(path):
-    """A sweep pauses Python's collector while it derives the variants and freezes them
-    while the batches run (fwdstep.sweeps.sweep: _collector_paused, _variants_frozen); afterwards,
-    after a refused variant too, the collector is as the caller had it: on or off, and with
-    the caller's own frozen objects still frozen."""
-    import gc
-    from fwdstep.core.errors import DiagramError
-    assert gc.isenabled() and gc.get_freeze_count() == 0
-    seen = []
-    run_sweep(path, {"gamma": [1, 2]}, workers=1,
-              progress=lambda text: seen.append((gc.isenabled(), gc.get_freeze_count())))
-    assert seen and all(on and frozen > 0 for on, frozen in seen)   # frozen while running
-    assert gc.isenabled() and gc.get_freeze_count() == 0
-    with pytest.raises(DiagramError):
-        run_sweep(path, {"ell": [2, -1]}, workers=1)                 # a refused variant
-    assert gc.isenabled() and gc.get_freeze_count() == 0
-    gc.disable()
-    try:
-        run_sweep(path, {"gamma": [1, 2]}, workers=1)
-        assert not gc.isenabled()
-    finally:
-        gc.enable()
-    gc.freeze()
-    try:
-        mine = gc.get_freeze_count()        # (a few frozen objects may be freed meanwhile)
-        run_sweep(path, {"gamma": [1, 2]}, workers=1)
-        assert gc.get_freeze_count() > mine // 2                     # not released
-    finally:
-        gc.unfreeze()
