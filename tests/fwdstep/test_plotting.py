@@ -213,3 +213,69 @@ def test_a_label_matplotlib_cannot_typeset_is_shown_literally(tmp_path):
     fig = result_figures(r)["decay"]
     fig.canvas.draw()                                  # typesetting would raise here
     assert fig.axes[0].get_ylabel() == "\\$\\Deltaq\\$ [rad]"
+
+
+WIDE = """
+parameters:
+  rates: {rates}
+blocks:
+  x: {{type: Integrator, shape: [{n}], initial: 1.0}}
+  k: {{type: Gain, gain: "-diag(rates)", shape: [{n}]}}
+connections:
+  - x.y -> k.u
+  - k.y -> x.u
+simulation: {{t_final: 0.5, step: 0.05}}
+log:
+  - {{signal: x.y, label: '$\\hat\\theta$'}}
+  - {{signal: k.y, label: '$\\theta$'}}
+plots:
+  estimates: [[x.y, k.y], x.y]
+"""
+
+
+def _wide(n):
+    return WIDE.format(n=n, rates=[round(0.1 * (i + 1), 2) for i in range(n)])
+
+
+def test_43_components_get_a_colour_bar_not_an_86_entry_legend(tmp_path):
+    from matplotlib.colors import to_rgba
+    from fwdstep.results.plotting import MAX_LEGEND_ENTRIES
+    r = _run(tmp_path, _wide(43))
+    fig = result_figures(r)["estimates"]
+    fig.canvas.draw()
+    pair, single = fig.axes[0], fig.axes[1]
+    assert len(pair.lines) == 86 and len(single.lines) == 43      # every component drawn
+    for j in range(43):
+        assert np.array_equal(pair.lines[j].get_ydata(), r["x.y"][:, j])
+        assert np.array_equal(pair.lines[43 + j].get_ydata(), r["k.y"][:, j])
+    # the legend names the two line styles only; the single-signal panel has none
+    assert _legend(pair) == ["$\\hat\\theta$", "$\\theta$"]
+    assert [ln.get_linestyle() for ln in pair.get_legend().get_lines()] == ["-", "--"]
+    assert single.get_legend() is None
+    for ax in (pair, single):
+        legend = ax.get_legend()
+        assert legend is None or len(legend.get_texts()) <= MAX_LEGEND_ENTRIES
+    # a colour bar per panel whose band for component j is the colour of line j
+    bars = [a._colorbar for a in fig.axes[2:]]
+    assert len(bars) == 2
+    for bar, ax in zip(bars, (pair, single)):
+        ticks = bar.get_ticks()
+        labels = [t.get_text() for t in bar.ax.get_yticklabels()]
+        assert labels[0] == "1" and all(lab.isdigit() for lab in labels)
+        assert all(1 <= int(lab) <= 43 for lab in labels)
+        for j in (0, 17, 42):
+            assert np.allclose(bar.cmap(bar.norm(j)), to_rgba(ax.lines[j].get_color()))
+        assert list(ticks) == sorted(ticks)
+    # the axes keep most of the width (an 86-entry legend left them a third)
+    assert pair.get_position().width > 0.7
+
+
+def test_seven_components_of_two_signals_list_colours_and_styles(tmp_path):
+    r = _run(tmp_path, _wide(7))
+    fig = result_figures(r)["estimates"]
+    pair = fig.axes[0]
+    assert len(pair.lines) == 14
+    assert _legend(pair) == [str(j) for j in range(1, 8)] + ["$\\hat\\theta$", "$\\theta$"]
+    assert pair.get_legend().get_title().get_text() == "component"
+    assert len(fig.axes) == 2                          # no colour bar
+    assert _legend(fig.axes[1]) == [f"${{\\hat\\theta}}_{{{j}}}$" for j in range(1, 8)]
