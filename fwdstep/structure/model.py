@@ -52,6 +52,7 @@ class DiagramSpec:
     input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
     signal_info: dict = field(default_factory=dict)   # "sub/blk.port" -> {label, unit, components}
     signal_lines: dict = field(default_factory=dict)  # "sub/blk.port" -> (file, line, as written)
+    sampled: dict = field(default_factory=dict)       # "sub/inner" -> {period, offset} (s)
 
 
 def kind_of(value) -> str:

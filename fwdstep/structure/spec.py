@@ -249,6 +249,7 @@ class _Level:
         self.input_ports: dict = {}     # (block, port) inside -> (outermost "sub.port", file, line)
         self.signal_info: dict = {}     # "sub/blk.port" -> {label, unit, components} declared below
         self.signal_lines: dict = {}    # "sub/blk.port" -> (file, line, as written) of those
+        self.sampled: dict = {}         # sampled subsystem path -> {"period", "offset"}
 
     def full(self, local: str) -> str:
         return f"{self.prefix}{local}"
@@ -467,6 +468,7 @@ class _Level:
                 self.input_ports[target] = (f"{self.full(name)}.{pname}", file, line)
         self.signal_info.update(child.signal_info)
         self.signal_lines.update(child.signal_lines)
+        self.sampled.update(child.sampled)
         self.sub_outputs[name] = {}
         for pname, source in outs.items():
             blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
@@ -877,7 +879,7 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
                        input_ports=level.input_ports, signal_info=signal_info,
-                       signal_lines=level.signal_lines)
+                       signal_lines=level.signal_lines, sampled=level.sampled)
     if not errors:
         infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
     return spec
