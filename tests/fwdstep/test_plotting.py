@@ -279,3 +279,25 @@ def test_seven_components_of_two_signals_list_colours_and_styles(tmp_path):
     assert pair.get_legend().get_title().get_text() == "component"
     assert len(fig.axes) == 2                          # no colour bar
     assert _legend(fig.axes[1]) == [f"${{\\hat\\theta}}_{{{j}}}$" for j in range(1, 8)]
+
+
+def test_twenty_variants_are_numbered_on_a_colour_bar(tmp_path):
+    from matplotlib.colors import to_rgba
+    path = tmp_path / "d.yaml"
+    path.write_text(DIAGRAM.replace("gain: -1", "gain: g").replace(
+        "blocks:", "parameters: {g: -1}\nblocks:"))
+    from fwdstep.structure.spec import load_spec
+    specs = [load_spec(str(path), {"g": -0.2 * (i + 1)}) for i in range(20)]
+    r = fwdstep.simulate(fwdstep.compile_batch(specs))
+    fig = result_figures(r)["decay"]
+    fig.canvas.draw()
+    single, pair = fig.axes[:2]
+    assert len(single.lines) == 20 and len(pair.lines) == 40
+    assert single.get_legend() is None
+    assert _legend(pair) == ["|x.y|", "|k.y|"]                   # the styles only
+    bar = fig.axes[2]._colorbar
+    labels = [t.get_text() for t in bar.ax.get_yticklabels()]
+    assert labels[0] == "0" and all(0 <= int(lab) <= 19 for lab in labels)
+    for b in (0, 7, 19):                       # the band of variant b is the colour of its line
+        assert np.allclose(bar.cmap(bar.norm(b)), to_rgba(single.lines[b].get_color()))
+        assert np.allclose(single.lines[b].get_ydata(), np.linalg.norm(r["x.y"][:, b], axis=1))
