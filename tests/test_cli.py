@@ -148,3 +148,20 @@ def test_blocks_unknown_name_exits_2(capsys):
     assert cli.main(["blocks", "NoSuchBlock"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "NoSuchBlock" in err
+
+
+def test_figure_format_writes_png_as_well(tmp_path):
+    import yaml
+    with open(THEOREM1, encoding="utf-8") as fh:
+        figures = list(yaml.safe_load(fh)["plots"])               # what the diagram names
+    out = tmp_path / "run"
+    assert cli.main(["run", THEOREM1, "-o", str(out), "-q", "--set", "simulation.t_final=0.2",
+                     "--figure-format", "pdf"]) == 0
+    for name in figures:
+        assert (out / f"{name}.png").read_bytes()[:8] == PNG_MAGIC
+        assert (out / f"{name}.pdf").read_bytes()[:5] == b"%PDF-"
+    assert not list(out.glob("*.svg"))
+    cmp = tmp_path / "cmp"
+    assert cli.main(["compare", str(out), str(out), "-o", str(cmp), "--figure-format", "svg"]) == 0
+    assert (cmp / "compare.png").read_bytes()[:8] == PNG_MAGIC
+    assert b"<svg" in (cmp / "compare.svg").read_bytes()[:3000]

@@ -136,7 +136,8 @@ def _add_results_commands(sub, run) -> None:
     """graph, report, compare and run's figure/report options (fwdstep.views.drawing/report/compare)."""
     run.add_argument("--figure-format", action="append", default=None,
                      choices=("png", "pdf", "svg"),
-                     help="figure file format (repeatable; default png)")
+                     help="also write the figures in this format (repeatable); PNG is "
+                          "always written")
     run.add_argument("--report", action="store_true",
                      help="also write report.html (self-contained) into the output directory")
     gr = sub.add_parser("graph", help="draw a diagram as a block diagram (SVG, PNG or PDF)")
@@ -178,7 +179,9 @@ def _add_results_commands(sub, run) -> None:
     cmp.add_argument("--signal", action="append", default=[], metavar="BLOCK.PORT",
                      help="signal to compare (repeatable; default: those of the figures)")
     cmp.add_argument("--figure-format", action="append", default=None,
-                     choices=("png", "pdf", "svg"), help="figure format (repeatable)")
+                     choices=("png", "pdf", "svg"),
+                     help="also write the figure in this format (repeatable); PNG is always "
+                          "written")
 
 
 def _results_command(args):
@@ -191,7 +194,7 @@ def _results_command(args):
         from fwdstep.cli import commands
         code = commands.cmd_run(args.diagram, args.set, args.outdir, args.force,
                                 plots=not args.no_plots, quiet=args.quiet, backend=args.backend,
-                                formats=tuple(dict.fromkeys(args.figure_format or ["png"])),
+                                formats=figure_formats(args.figure_format),
                                 max_log_memory=args.max_log_memory,
                                 log_to_disk=args.log_to_disk)
         if args.report and code != 2:            # partial results get a report too
@@ -206,8 +209,15 @@ def _results_command(args):
         return cmd_animate(args.runs, args.output, args.fps)
     if args.command == "compare":
         from fwdstep.cli.verbs import cmd_compare
-        return cmd_compare(args.runs, args.outdir, args.signal, args.figure_format)
+        return cmd_compare(args.runs, args.outdir, args.signal,
+                           figure_formats(args.figure_format))
     return None
+
+
+def figure_formats(asked) -> tuple:
+    """What ``--figure-format`` asks for, in addition to PNG (always written: the report
+    and the README's examples read the PNG)."""
+    return tuple(dict.fromkeys(["png"] + list(asked or [])))
 
 
 def main(argv=None) -> int:

@@ -30,6 +30,7 @@ WIDTH = 8.0          # inches; a figure fits a page or a slide at 100%
 PANEL_HEIGHT = 2.6
 DPI = 120
 MAX_LEGEND_ROWS = 16
+MAX_LEGEND_ENTRIES = 12   # more lines than this: a legend of colours and styles, or a colour bar
 
 
 @dataclass(frozen=True)
@@ -152,18 +153,103 @@ def line_colors(n: int) -> list:
     return [colormaps["viridis"](x) for x in np.linspace(0, 0.95, n)]
 
 
-def place_legend(ax, title: str | None = None) -> None:
-    """Every entry listed: inside the panel when few, beside it in columns when many."""
+@dataclass(frozen=True)
+class LineKey:
+    """What colour and line style mean in one panel, for a legend that stays short.
+
+    Lines are coloured by one thing (a signal's component, a variant of a batch, a run) and
+    styled by another (the signal): ``colors``/``color_names`` and ``styles``/``style_names``
+    pair each colour and style with its meaning.  ``color_kind`` names what the colours
+    stand for ("component", "variant", "run"); ``color_values`` is what the colour bar shows
+    for each colour (default 1 ... n)."""
+    colors: tuple
+    color_names: tuple
+    color_kind: str = "component"
+    styles: tuple = ("-",)
+    style_names: tuple = ("",)
+    color_values: tuple = ()
+
+
+def _unique_entries(ax) -> tuple:
+    """The panel's legend handles and labels, each label once (its first line)."""
     handles, labels = ax.get_legend_handles_labels()
+    seen, out_h, out_l = set(), [], []
+    for h, lab in zip(handles, labels):
+        if lab not in seen:
+            seen.add(lab)
+            out_h.append(h)
+            out_l.append(lab)
+    return out_h, out_l
+
+
+def place_legend(ax, title: str | None = None, key: LineKey | None = None) -> None:
+    """A legend of at most ``MAX_LEGEND_ENTRIES`` entries, never one that crowds the axes.
+
+    Up to that many labelled lines, one entry per line (inside the panel when few, beside it
+    when more).  Beyond, with a ``key``: one entry per colour and one per line style, and when
+    the colours alone are too many, a colour bar of them (by index) instead of their entries.
+    Without a key the first entries are listed and the last says how many are not."""
+    handles, labels = _unique_entries(ax)
+    if len(handles) > MAX_LEGEND_ENTRIES and key is not None:
+        handles, labels, bar = _key_entries(ax, key)
+        if bar is not None:          # only the line styles are left: one row above the panel
+            if handles:
+                ax.legend(handles, labels, fontsize=7, loc="lower right", ncol=len(handles),
+                          bbox_to_anchor=(1.0, 1.0), borderaxespad=0.2, frameon=False,
+                          handlelength=2.5, title=title, title_fontsize=7)
+            return
+        title = title if title is not None else key.color_kind
+    elif len(handles) > MAX_LEGEND_ENTRIES:
+        from matplotlib.lines import Line2D
+        more = len(handles) - MAX_LEGEND_ENTRIES + 1
+        handles = handles[:MAX_LEGEND_ENTRIES - 1] + [Line2D([], [], lw=0)]
+        labels = labels[:MAX_LEGEND_ENTRIES - 1] + [f"… {more} more not listed"]
     if not handles:
         return
     if len(handles) <= 6:
-        ax.legend(fontsize=7, loc="best", ncol=2 if len(handles) > 3 else 1, title=title,
-                  title_fontsize=7)
+        ax.legend(handles, labels, fontsize=7, loc="best", ncol=2 if len(handles) > 3 else 1,
+                  title=title, title_fontsize=7)
     else:
         ncol = -(-len(handles) // MAX_LEGEND_ROWS)
-        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0), ncol=ncol,
-                  borderaxespad=0, title=title, title_fontsize=6)
+        ax.legend(handles, labels, fontsize=6, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  ncol=ncol, borderaxespad=0, title=title, title_fontsize=6)
+
+
+def _key_entries(ax, key: LineKey) -> tuple:
+    """Legend entries for a key: the colours if they fit beside the line styles (listed when
+    more than one), else a colour bar of the colours on the panel (returned, else None)."""
+    from matplotlib.lines import Line2D
+    handles, labels, bar = [], [], None
+    n_styles = len(key.styles) if len(key.styles) > 1 else 0
+    if len(key.colors) + n_styles <= MAX_LEGEND_ENTRIES:
+        handles += [Line2D([], [], color=c, lw=1.1) for c in key.colors]
+        labels += [str(n) for n in key.color_names]
+    else:
+        bar = color_bar(ax, key)
+    if n_styles:
+        handles += [Line2D([], [], color="0.25", lw=1.1, ls=s) for s in key.styles]
+        labels += [str(n) for n in key.style_names]
+    return handles, labels, bar
+
+
+def color_bar(ax, key: LineKey):
+    """A discrete colour bar beside ``ax``: one band per colour of ``key``, integer ticks."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+    from matplotlib.ticker import MaxNLocator
+    n = len(key.colors)
+    values = list(key.color_values) or list(range(1, n + 1))
+    mappable = ScalarMappable(BoundaryNorm(np.arange(n + 1) - 0.5, n), ListedColormap(key.colors))
+    bar = ax.figure.colorbar(mappable, ax=ax, pad=0.01, fraction=0.05, aspect=20)
+    at = {v: k for k, v in enumerate(values)}          # a value's band
+    ticks = [at[int(v)] for v in MaxNLocator(nbins=8, steps=[1, 2, 5, 10], integer=True).tick_values(
+        min(values), max(values)) if int(v) == v and int(v) in at]
+    ticks = sorted({0, *ticks})                          # the first band is always named
+    bar.set_ticks(ticks, labels=[str(values[t]) for t in ticks])
+    bar.ax.tick_params(labelsize=7)
+    bar.ax.minorticks_off()
+    bar.set_label(f"{key.color_kind} ({n})", fontsize=8)
+    return bar
 
 
 def time_axis(ax, t: np.ndarray) -> None:
@@ -283,7 +369,7 @@ def panel_figure(result: Result, panels: list, title: str = "", subtitle: str = 
     for ax, (panel, scale) in zip(axes, panels):
         infos = [signal_info(result, s) for s in panel]
         log = scale == "log"
-        draw_panel(ax, result, infos, variants, log=log)
+        key = draw_panel(ax, result, infos, variants, log=log)
         if log:
             ax.set_yscale("log")
         absolute = log or result.batch > 1          # what is drawn: |component| or |signal|
@@ -295,7 +381,7 @@ def panel_figure(result: Result, panels: list, title: str = "", subtitle: str = 
             ylabel = names + (f" [{units.pop()}]" if len(units) == 1 and "" not in units else "")
         ax.set_ylabel(ylabel if len(ylabel) <= 45 else textwrap.fill(ylabel, 30), fontsize=9)
         time_axis(ax, result.t)
-        place_legend(ax)
+        place_legend(ax, key=key)
     axes[-1].set_xlabel("$t$ [s]", fontsize=9)
     finish_figure(fig, title, subtitle)
     return fig
@@ -304,15 +390,19 @@ def panel_figure(result: Result, panels: list, title: str = "", subtitle: str = 
 _STYLES = ("-", "--", ":", "-.")
 
 
-def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False) -> int:
+def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False) -> LineKey:
     """Draw every component of every signal (|component| on a log panel); for a batch, |signal|
     of every chosen variant.  Component i has one colour whatever the signal, each signal its
-    own line style, so an estimate and its true value share a colour.  Returns lines drawn."""
+    own line style, so an estimate and its true value share a colour.  Every line is labelled;
+    the returned key says what colours and styles mean, for ``place_legend`` when the lines
+    are too many to list."""
     t = result.t
-    drawn = 0
+    styles = tuple(_STYLES[k % 4] for k in range(len(infos)))
+    style_names = tuple(f"|{i.label}|" if log or result.batch > 1 else i.label for i in infos)
     if result.batch == 1:
-        widest = max(int(np.prod(result[i.name].shape[1:], dtype=int)) for i in infos)
-        colors = line_colors(widest)
+        shapes = [result[i.name].shape[1:] for i in infos]
+        widest = max(range(len(infos)), key=lambda k: int(np.prod(shapes[k], dtype=int)))
+        colors = line_colors(int(np.prod(shapes[widest], dtype=int)))
         for k, info in enumerate(infos):
             data = result[info.name]
             shape = data.shape[1:]
@@ -323,10 +413,12 @@ def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False
                 if len(infos) > 1 and shape and info.components:
                     name = f"{info.label}: {name}"
                 y = np.abs(flat[:, j]) if log else flat[:, j]
-                ax.plot(t, y, lw=1.1, ls=_STYLES[k % 4], color=colors[j],
+                ax.plot(t, y, lw=1.1, ls=styles[k], color=colors[j],
                         label=f"|{name}|" if log and not info.components else name)
-                drawn += 1
-        return drawn
+        info, shape = infos[widest], shapes[widest]
+        names = tuple(info.components) if len(info.components) == len(colors) else \
+            tuple(str(j + 1) for j in range(len(colors)))
+        return LineKey(tuple(colors), names, "component", styles, style_names)
     chosen = list(variants) if variants is not None else list(range(result.batch))
     colors = line_colors(len(chosen))
     names = variant_names(result)
@@ -335,10 +427,10 @@ def draw_panel(ax, result: Result, infos: list, variants=None, log: bool = False
         for c, b in enumerate(chosen):
             flat = data[:, b].reshape(len(t), -1)
             norm = np.sqrt(np.sum(flat ** 2, axis=1))
-            ax.plot(t, norm, lw=1.0, ls=_STYLES[k % 4], color=colors[c],
+            ax.plot(t, norm, lw=1.0, ls=styles[k], color=colors[c],
                     label=(f"{info.label}: " if len(infos) > 1 else "") + names[b])
-            drawn += 1
-    return drawn
+    return LineKey(tuple(colors), tuple(names[b] for b in chosen), "variant", styles,
+                   style_names, tuple(chosen))
 
 
 def variant_names(result: Result) -> list:

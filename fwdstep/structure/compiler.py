@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from fwdstep.core.block import Block
-from fwdstep.core.errors import ConfigError, DiagramError
+from fwdstep.core.errors import ConfigError, DiagramError, WiringError
 from fwdstep.structure.graph import Structure, build_structure, instantiate
 from fwdstep.core.linear import fusable
 from fwdstep.structure.spec import DiagramSpec, load_spec
@@ -308,10 +308,23 @@ def compile_structure(structure: Structure, batch: int, params: list) -> Compile
     for step in stateful:
         x0[:, step.state] = np.broadcast_to(step.block.x0, (batch, step.block.n_states))
     logged = _logged_signals(spec, index)
+    _check_declared_signals(spec, index)
     return CompiledDiagram(spec=spec, structure=structure, batch=batch, schedule=schedule,
                            stateful=stateful, n_states=offset, x0=x0, signal_names=names,
                            signal_shapes=shapes, signal_index=index, constant_signals=constants,
                            logged=logged, variant_parameters=params)
+
+
+def _check_declared_signals(spec: DiagramSpec, index: dict) -> None:
+    """A subsystem file's ``log:`` names signals for the figures: each must exist."""
+    for real, (file, line, written) in spec.signal_lines.items():
+        if real not in index:
+            blk = real.rsplit(".", 1)[0]
+            ports = [n.rsplit(".", 1)[1] for n in index if n.rsplit(".", 1)[0] == blk]
+            hint = (f"; block '{blk}' has outputs: {', '.join(ports)}" if ports else
+                    f"; there is no block '{blk}'")
+            raise WiringError(f"log: signal '{written}' does not exist{hint}", file=file,
+                              line=line, block=blk)
 
 
 def _logged_signals(spec: DiagramSpec, index: dict) -> list:

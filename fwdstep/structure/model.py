@@ -50,7 +50,9 @@ class DiagramSpec:
     lines: dict = field(default_factory=dict)   # where log/plots/metrics were written
     plot_scales: dict = field(default_factory=dict)   # figure -> ["linear" | "log"] per panel
     input_ports: dict = field(default_factory=dict)   # inner (block, port) -> subsystem port
-    signal_info: dict = field(default_factory=dict)   # signal -> {label, unit, components}
+    signal_info: dict = field(default_factory=dict)   # "sub/blk.port" -> {label, unit, components}
+    signal_lines: dict = field(default_factory=dict)  # "sub/blk.port" -> (file, line, as written)
+    sampled: dict = field(default_factory=dict)       # "sub/inner" -> {period, offset} (s)
 
 
 def kind_of(value) -> str:

@@ -38,6 +38,7 @@ def sample_subsystem(level, name: str, body, file: str, line) -> None:
     if not values.get("period", 0.0) > 0:
         raise ConfigError(f"subsystem '{full}' sample_period must be positive", file=file,
                           line=_line(body, "sample_period"))
+    level.sampled[full] = {"period": values["period"], "offset": values.get("offset", 0.0)}
     hold = lookup("ZeroOrderHold")
     entries = {b.name: b for b in level.blocks}
 

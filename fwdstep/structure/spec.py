@@ -247,6 +247,9 @@ class _Level:
         self.sub_outputs: dict[str, dict] = {}        # subsystem -> output name -> (blk, port)
         self.aliases: dict[str, str] = {}
         self.input_ports: dict = {}     # (block, port) inside -> (outermost "sub.port", file, line)
+        self.signal_info: dict = {}     # "sub/blk.port" -> {label, unit, components} declared below
+        self.signal_lines: dict = {}    # "sub/blk.port" -> (file, line, as written) of those
+        self.sampled: dict = {}         # sampled subsystem path -> {"period", "offset"}
 
     def full(self, local: str) -> str:
         return f"{self.prefix}{local}"
@@ -303,6 +306,36 @@ class _Level:
                 if isinstance(name, str):
                     self.local_blocks[name] = "failed"
         self._connections()
+        if self.prefix:             # the top level's log: is read by load_spec
+            self._declared_labels()
+
+    def _declared_labels(self):
+        """A subsystem file's ``log:`` mappings name its signals (label, unit, components);
+        recorded under the block port each resolves to, so that the names follow the signal
+        out through the subsystem's ``ports: outputs:`` (an outer declaration wins)."""
+        log = self.doc.get("log")
+        if log is None:
+            return
+        file = self.file
+        if not isinstance(log, list):
+            self._record(ConfigError("'log:' must be a list of block.port names", file=file,
+                                     line=_line(self.doc, "log")))
+            return
+        for i, entry in enumerate(log):
+            line = _line(log, i)
+            try:
+                declared: dict = {}
+                name = signal_entry(entry, declared, "log", file, line)
+                blk, port = parse_signal(name, "log", file, line)
+                src = self.resolve_src(blk, port, file, line, "log")
+            except _Failed:
+                continue
+            except DiagramError as exc:
+                self._record(exc)
+                continue
+            if declared:
+                merge_signal_info(self.signal_info, f"{src[0]}.{src[1]}", declared[str(name)])
+                self.signal_lines[f"{src[0]}.{src[1]}"] = (file, line, str(name))
 
     def _add_block(self, name: str, body: LineDict, line, sets: dict):
         file = self.file
@@ -433,6 +466,9 @@ class _Level:
             self.sub_inputs[name][pname] = resolved
             for target in resolved:
                 self.input_ports[target] = (f"{self.full(name)}.{pname}", file, line)
+        self.signal_info.update(child.signal_info)
+        self.signal_lines.update(child.signal_lines)
+        self.sampled.update(child.sampled)
         self.sub_outputs[name] = {}
         for pname, source in outs.items():
             blk, port = parse_signal(source, f"subsystem output '{pname}'", path, _line(outs, pname))
@@ -446,7 +482,12 @@ class _Level:
         self.blocks.extend(child.blocks)
         self.connections.extend(child.connections)
         if "sample_period" in body or "sample_offset" in body:   # a sampled controller
+            inner = dict(self.sub_outputs[name])
             sample_subsystem(self, name, body, file, line)
+            for pname, held in self.sub_outputs[name].items():   # a held output: same names
+                known = self.signal_info.get(f"{inner[pname][0]}.{inner[pname][1]}")
+                if known and held != inner[pname]:
+                    merge_signal_info(self.signal_info, f"{held[0]}.{held[1]}", known)
         self.children[name] = child
         self.local_blocks[name] = "subsystem"
 
@@ -535,9 +576,14 @@ def signal_entry(entry, info: dict, where: str, file: str, line) -> Any:
     meta = {"label": None if entry.get("label") is None else str(entry["label"]),
             "unit": str(entry.get("unit") or ""),
             "components": None if comps is None else [str(c) for c in comps]}
-    old = info.setdefault(str(entry["signal"]), {"label": None, "unit": "", "components": None})
-    old.update({k: v for k, v in meta.items() if v})
+    merge_signal_info(info, str(entry["signal"]), meta)
     return entry["signal"]
+
+
+def merge_signal_info(info: dict, key: str, meta: dict) -> None:
+    """``info[key]`` takes what ``meta`` declares (its non-empty label, unit, components)."""
+    old = info.setdefault(key, {"label": None, "unit": "", "components": None})
+    old.update({k: v for k, v in meta.items() if v})
 
 
 def _read_document(path: str, cache: dict | None = None) -> LineDict:
@@ -824,11 +870,16 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                 raise ConfigError("metrics.tail must be a fraction in (0, 1]", file=path,
                                   line=_line(metrics_raw, key))
             metrics["tail"] = v
+    declared = {key: dict(meta) for key, meta in level.signal_info.items()}
+    for name, meta in signal_info.items():      # by the block port each name resolves to
+        merge_signal_info(declared, level.aliases.get(name, name), meta)
+    signal_info = declared
     spec = DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
-                       input_ports=level.input_ports, signal_info=signal_info)
+                       input_ports=level.input_ports, signal_info=signal_info,
+                       signal_lines=level.signal_lines, sampled=level.sampled)
     if not errors:
         infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
     return spec

@@ -653,9 +653,20 @@ def _numeric(values: list):
 
 
 def plot_sweep(result: SweepResult, outdir: str) -> str:
-    """sweep.png: the tail metric against each swept parameter, and |e|(t) traces."""
-    from fwdstep.results.plotting import (SignalInfo, figure_bytes, finish_figure, line_colors, new_figure,
-                           place_legend, safe_label)
+    """Write sweep.png (``sweep_figure``) into ``outdir``; its path."""
+    from fwdstep.results.plotting import figure_bytes
+    data = figure_bytes(sweep_figure(result), "png")
+    path = safe_path(outdir, FIGURE_FILE)
+    atomic_write(path, lambda fh: fh.write(data), binary=True)
+    return path
+
+
+def sweep_figure(result: SweepResult):
+    """The tail metric against each swept parameter (integer ticks when every swept value is
+    a whole number), and |e|(t) traces."""
+    from matplotlib.ticker import MaxNLocator
+    from fwdstep.results.plotting import (LineKey, SignalInfo, finish_figure, line_colors,
+                                          new_figure, place_legend, safe_label)
 
     rec = result.signal_info or {}     # the diagram's label and unit, as the run figures
     info = SignalInfo(str(result.metric_signal), safe_label(rec.get("label") or
@@ -695,27 +706,28 @@ def plot_sweep(result: SweepResult, outdir: str) -> str:
                 top = max([max(v.metrics.values()) for v in ok] + [1.0])
                 ax.plot(xd, np.full(len(xd), top), "rx", label="diverged")
         ax.set_yscale("log")
+        if _numeric(raw) is not None and np.all(x == np.round(x)):   # 1, 2, 3: never 1.25
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlabel(name)
         ax.set_ylabel(info.axis_label(absolute=True))
         ax.grid(True, alpha=0.3, which="both")
         place_legend(ax)
     ax = axes[-1]
     traces = sorted(result.traces.items())
-    for color, (i, (t, norm)) in zip(line_colors(len(traces)), traces):   # one colour each
-        ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color,
-                    label=_describe(result.variants[i].values, result.names))
+    colors = line_colors(len(traces))
+    names = [_describe(result.variants[i].values, result.names) for i, _ in traces]
+    for color, name, (i, (t, norm)) in zip(colors, names, traces):       # one colour each
+        ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color, label=name)
     ax.set_xlabel("$t$ [s]")
     ax.set_ylabel(f"{norm_label}(t)" + (f" [{info.unit}]" if info.unit else ""))
     ax.grid(True, alpha=0.3, which="both")
-    place_legend(ax)
+    place_legend(ax, key=LineKey(tuple(colors), tuple(names), "variant",
+                                 color_values=tuple(i for i, _ in traces)))
     if 0 < len(traces) < len(result.variants):          # say so: never a silent selection
         ax.set_title(f"{len(traces)} of {len(result.variants)} variants drawn", fontsize=8)
     finish_figure(fig, f"Sweep of {os.path.basename(result.diagram)}: "
                        f"{len(result.variants)} variants")
-    data = figure_bytes(fig, "png")
-    path = safe_path(outdir, FIGURE_FILE)
-    atomic_write(path, lambda fh: fh.write(data), binary=True)
-    return path
+    return fig
 
 
 def _series(ok: list, others: list) -> dict:

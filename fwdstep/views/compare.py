@@ -26,8 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from fwdstep.core.errors import OutputError
-from fwdstep.results.plotting import (check_formats, line_colors, new_figure, place_legend, save_figure,
-                       signal_info, time_axis, finish_figure, FORMATS)
+from fwdstep.results.plotting import (FORMATS, LineKey, check_formats, finish_figure, line_colors,
+                                     new_figure, place_legend, save_figure, signal_info,
+                                     time_axis)
 from fwdstep.results.result import Result, load_result
 
 CSV_FILE = "compare.csv"
@@ -275,33 +276,40 @@ def table_csv(rows: list) -> str:
 
 
 def comparison_figure(runs: list, signals: list, diffs: dict):
-    """Per signal: the runs overlaid (one colour per run, one line style per component) and
-    the differences to the first run."""
+    """Per signal: the runs overlaid (one colour per run; one line style per component when
+    they are at most four, else all solid) and the differences to the first run."""
     fig, axes = new_figure(2 * len(signals), height=2.3 * 2 * len(signals) + 0.9)
     colors = line_colors(len(runs))
+    labels = [r.label for r in runs]
     t_ref = runs[0].result.t
     for n, name in enumerate(signals):
         info = signal_info(runs[0].result, name)
         over, diff = axes[2 * n], axes[2 * n + 1]
+        shape = runs[0].data(name).shape[1:]
+        width = int(np.prod(shape, dtype=int))
+        styled = 1 < width <= len(_STYLES)        # more components: styles would repeat
+        comps = [_component(info, shape, j) if styled else "" for j in range(width)]
+        styles = [_STYLES[j] if styled else "-" for j in range(width)]
         for k, run in enumerate(runs):
-            data = run.data(name)
-            flat = data.reshape(len(run.result.t), -1)
+            flat = run.data(name).reshape(len(run.result.t), -1)
             for j in range(flat.shape[1]):
-                comp = _component(info, data.shape[1:], j)
-                over.plot(run.result.t, flat[:, j], color=colors[k], ls=_STYLES[j % 4], lw=1.1,
-                          label=f"{run.label}" + (f", {comp}" if comp else ""))
+                over.plot(run.result.t, flat[:, j], color=colors[k], ls=styles[j], lw=1.1,
+                          label=run.label + (f", {comps[j]}" if comps[j] else ""))
             if k:
                 d = diffs[name][k - 1].reshape(len(t_ref), -1)
                 for j in range(d.shape[1]):
-                    comp = _component(info, data.shape[1:], j)
-                    diff.plot(t_ref, d[:, j], color=colors[k], ls=_STYLES[j % 4], lw=1.1,
-                              label=f"{run.label} − {runs[0].label}" + (f", {comp}" if comp
-                                                                        else ""))
+                    diff.plot(t_ref, d[:, j], color=colors[k], ls=styles[j], lw=1.1,
+                              label=f"{run.label} − {labels[0]}" + (f", {comps[j]}" if comps[j]
+                                                                    else ""))
         over.set_ylabel(info.axis_label(), fontsize=9)
         diff.set_ylabel(f"Δ {info.label}" + (f" [{info.unit}]" if info.unit else ""), fontsize=9)
-        for ax in (over, diff):
+        style_key = (tuple(styles), tuple(comps)) if styled else (("-",), ("",))
+        keys = (LineKey(tuple(colors), tuple(labels), "run", *style_key),
+                LineKey(tuple(colors[1:]), tuple(f"{lab} − {labels[0]}" for lab in labels[1:]),
+                        "run", *style_key))
+        for ax, key in zip((over, diff), keys):
             time_axis(ax, t_ref)
-            place_legend(ax)
+            place_legend(ax, key=key)
     axes[-1].set_xlabel("$t$ [s]", fontsize=9)
     names = ", ".join(r.label for r in runs)
     finish_figure(fig, f"Comparison of {names}" if len(names) <= 90 else

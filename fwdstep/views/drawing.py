@@ -134,6 +134,8 @@ def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Pict
     # frames, and collapsed subsystems with their own port names
     for prefix, file in sub_files.items():
         label = prefix.split("/")[-1] + (f"  ({_as_written(file, spec.file)})" if file else "")
+        note = sampling_note(getattr(spec, "sampled", {}).get(prefix))
+        label += f"  ·  {note}" if note else ""
         if owner(prefix + "/x") == prefix + "/x":
             frames[prefix] = label
     collapsed_in, collapsed_out = {}, {}
@@ -149,8 +151,10 @@ def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Pict
         ins = list(dict.fromkeys(collapsed_in.get(key, {}).values()))
         outs = list(dict.fromkeys(collapsed_out.get(key, {}).values()))
         file = sub_files.get(key)
+        note = sampling_note(getattr(spec, "sampled", {}).get(key))
         boxes[key] = Box(key, parts[-1], "subsystem" + (f" {os.path.basename(file)}"
-                                                        if file else ""), ins, outs, "",
+                                                        if file else "")
+                         + (f", {note}" if note else ""), ins, outs, "",
                          tuple("/".join(parts[:k]) for k in range(1, len(parts))))
     edges, seen = [], set()
     for conn in spec.connections:
@@ -174,6 +178,15 @@ def build_picture(diagram, depth: int | None = None, tags: bool = False) -> Pict
     from fwdstep.results.plotting import headline
     picture = Picture(boxes, [tuple(e) for e in edges], frames, headline(spec.description, 140))
     return with_tags(picture, spec.aliases) if tags else picture
+
+
+def sampling_note(sampled: dict | None) -> str:
+    """'sampled, T = 0.01 s (offset 0.002 s)' for a sampled subsystem, else ''."""
+    if not sampled:
+        return ""
+    offset = sampled.get("offset") or 0.0
+    return (f"sampled, T = {sampled['period']:g} s"
+            + (f" (offset {offset:g} s)" if offset else ""))
 
 
 #: a signal feeding this many blocks or more is drawn with tags (see ``with_tags``) ...

@@ -19,11 +19,19 @@ td,th{border:1px solid #ccc;padding:.2em .5em;text-align:left;vertical-align:top
 th{background:#f4f6f7} .num{text-align:right;font-family:monospace}
 .ok{color:#1e8449;font-weight:bold} .bad{color:#c0392b;font-weight:bold}
 figure{margin:1em 0} figcaption{font-size:.85em;color:#555}
-img{max-width:100%;border:1px solid #eee} .diagram{overflow:auto;max-height:900px}
-.diagram img{max-width:none}
+img{max-width:100%;height:auto;box-sizing:border-box;border:1px solid #eee}
+.diagram img{cursor:zoom-in}
 
 pre{background:#f8f9f9;padding:.6em;white-space:pre-wrap;font-size:.85em}
 """
+
+
+# opens an inlined picture in a new tab: browsers refuse to navigate to a data: URL, so the
+# picture is handed over as a blob (the page stays one self-contained file)
+_OPEN_SCRIPT = """<script>function fwdstepOpen(img){var p=img.src.split(",");
+var mime=p[0].slice(5).split(";")[0],bin=atob(p[1]),buf=new Uint8Array(bin.length);
+for(var i=0;i<bin.length;i++)buf[i]=bin.charCodeAt(i);
+window.open(URL.createObjectURL(new Blob([buf],{type:mime})),"_blank");}</script>"""
 
 
 def _img(data: bytes, mime: str, alt: str) -> str:
@@ -67,8 +75,12 @@ def _diagram_section(summary: dict) -> list:
     """The "Diagram" heading, the picture of ``summary['diagram']`` and any note about it."""
     svg, note = diagram_picture(summary)
     out = ["<h2>Diagram</h2>"]
-    if svg is not None:
-        out.append(f'<div class="diagram">{_img(svg, "image/svg+xml", "block diagram")}</div>')
+    if svg is not None:         # the whole picture at the page's width; a click opens it
+        picture = _img(svg, "image/svg+xml", "block diagram").replace(
+            "<img ", '<img title="open the picture at full size" '
+                     'onclick="fwdstepOpen(this)" ', 1)
+        out.append(f'<figure class="diagram">{picture}<figcaption>click the picture to open '
+                   f'it at full size</figcaption></figure>{_OPEN_SCRIPT}')
     if note:
         out.append(f"<p>{html.escape(note)}</p>")
     return out

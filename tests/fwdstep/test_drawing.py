@@ -73,6 +73,23 @@ def test_frames_name_their_file_as_the_diagram_does_from_any_directory(monkeypat
     assert frames["qds"] == "qds  (lib/qd_star.yaml)"
 
 
+def test_a_sampled_subsystem_shows_its_period_on_its_frame_and_its_box(tmp_path):
+    import pathlib
+    text = pathlib.Path("diagrams/slotine_li_disturbed.yaml").read_text()
+    written = "file: lib/torque_passive.yaml,"
+    assert written in text
+    path = tmp_path / "sampled.yaml"
+    path.write_text(text.replace(written, written + " sample_period: 0.002, sample_offset: 5e-4,"))
+    d = fwdstep.load_diagram(str(path))
+    frames = build_picture(d).frames
+    assert frames["tq"] == "tq  (lib/torque_passive.yaml)  ·  sampled, T = 0.002 s (offset 0.0005 s)"
+    assert frames["plant"] == "plant  (lib/plant.yaml)"             # not sampled: no period
+    assert "T = 0.002 s" in diagram_dot(build_picture(d))
+    box = build_picture(d, depth=0).boxes["tq"]
+    assert box.kind == "subsystem torque_passive.yaml, sampled, T = 0.002 s (offset 0.0005 s)"
+    assert build_picture(d, depth=0).boxes["plant"].kind == "subsystem plant.yaml"
+
+
 @needs_dot
 def test_every_shipped_diagram_draws_with_dot(tmp_path):
     for path in sorted(glob.glob("diagrams/*.yaml")):

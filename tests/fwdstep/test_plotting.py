@@ -213,3 +213,91 @@ def test_a_label_matplotlib_cannot_typeset_is_shown_literally(tmp_path):
     fig = result_figures(r)["decay"]
     fig.canvas.draw()                                  # typesetting would raise here
     assert fig.axes[0].get_ylabel() == "\\$\\Deltaq\\$ [rad]"
+
+
+WIDE = """
+parameters:
+  rates: {rates}
+blocks:
+  x: {{type: Integrator, shape: [{n}], initial: 1.0}}
+  k: {{type: Gain, gain: "-diag(rates)", shape: [{n}]}}
+connections:
+  - x.y -> k.u
+  - k.y -> x.u
+simulation: {{t_final: 0.5, step: 0.05}}
+log:
+  - {{signal: x.y, label: '$\\hat\\theta$'}}
+  - {{signal: k.y, label: '$\\theta$'}}
+plots:
+  estimates: [[x.y, k.y], x.y]
+"""
+
+
+def _wide(n):
+    return WIDE.format(n=n, rates=[round(0.1 * (i + 1), 2) for i in range(n)])
+
+
+def test_43_components_get_a_colour_bar_not_an_86_entry_legend(tmp_path):
+    from matplotlib.colors import to_rgba
+    from fwdstep.results.plotting import MAX_LEGEND_ENTRIES
+    r = _run(tmp_path, _wide(43))
+    fig = result_figures(r)["estimates"]
+    fig.canvas.draw()
+    pair, single = fig.axes[0], fig.axes[1]
+    assert len(pair.lines) == 86 and len(single.lines) == 43      # every component drawn
+    for j in range(43):
+        assert np.array_equal(pair.lines[j].get_ydata(), r["x.y"][:, j])
+        assert np.array_equal(pair.lines[43 + j].get_ydata(), r["k.y"][:, j])
+    # the legend names the two line styles only; the single-signal panel has none
+    assert _legend(pair) == ["$\\hat\\theta$", "$\\theta$"]
+    assert [ln.get_linestyle() for ln in pair.get_legend().get_lines()] == ["-", "--"]
+    assert single.get_legend() is None
+    for ax in (pair, single):
+        legend = ax.get_legend()
+        assert legend is None or len(legend.get_texts()) <= MAX_LEGEND_ENTRIES
+    # a colour bar per panel whose band for component j is the colour of line j
+    bars = [a._colorbar for a in fig.axes[2:]]
+    assert len(bars) == 2
+    for bar, ax in zip(bars, (pair, single)):
+        ticks = bar.get_ticks()
+        labels = [t.get_text() for t in bar.ax.get_yticklabels()]
+        assert labels[0] == "1" and all(lab.isdigit() for lab in labels)
+        assert all(1 <= int(lab) <= 43 for lab in labels)
+        for j in (0, 17, 42):
+            assert np.allclose(bar.cmap(bar.norm(j)), to_rgba(ax.lines[j].get_color()))
+        assert list(ticks) == sorted(ticks)
+    # the axes keep most of the width (an 86-entry legend left them a third)
+    assert pair.get_position().width > 0.7
+
+
+def test_seven_components_of_two_signals_list_colours_and_styles(tmp_path):
+    r = _run(tmp_path, _wide(7))
+    fig = result_figures(r)["estimates"]
+    pair = fig.axes[0]
+    assert len(pair.lines) == 14
+    assert _legend(pair) == [str(j) for j in range(1, 8)] + ["$\\hat\\theta$", "$\\theta$"]
+    assert pair.get_legend().get_title().get_text() == "component"
+    assert len(fig.axes) == 2                          # no colour bar
+    assert _legend(fig.axes[1]) == [f"${{\\hat\\theta}}_{{{j}}}$" for j in range(1, 8)]
+
+
+def test_twenty_variants_are_numbered_on_a_colour_bar(tmp_path):
+    from matplotlib.colors import to_rgba
+    path = tmp_path / "d.yaml"
+    path.write_text(DIAGRAM.replace("gain: -1", "gain: g").replace(
+        "blocks:", "parameters: {g: -1}\nblocks:"))
+    from fwdstep.structure.spec import load_spec
+    specs = [load_spec(str(path), {"g": -0.2 * (i + 1)}) for i in range(20)]
+    r = fwdstep.simulate(fwdstep.compile_batch(specs))
+    fig = result_figures(r)["decay"]
+    fig.canvas.draw()
+    single, pair = fig.axes[:2]
+    assert len(single.lines) == 20 and len(pair.lines) == 40
+    assert single.get_legend() is None
+    assert _legend(pair) == ["|x.y|", "|k.y|"]                   # the styles only
+    bar = fig.axes[2]._colorbar
+    labels = [t.get_text() for t in bar.ax.get_yticklabels()]
+    assert labels[0] == "0" and all(0 <= int(lab) <= 19 for lab in labels)
+    for b in (0, 7, 19):                       # the band of variant b is the colour of its line
+        assert np.allclose(bar.cmap(bar.norm(b)), to_rgba(single.lines[b].get_color()))
+        assert np.allclose(single.lines[b].get_ydata(), np.linalg.norm(r["x.y"][:, b], axis=1))

@@ -138,3 +138,52 @@ def test_chromium_renders_the_report_images(tmp_path):
     orange = np.all(np.abs(img - [253, 242, 233]) <= 3, axis=2).sum()
     assert blue > 200 and orange > 50, (blue, orange)
 
+
+
+def test_the_diagram_is_shown_whole_at_the_page_width_and_opens_full_size(tmp_path):
+    out = _run(tmp_path)
+    text = (out / "report.html").read_text()
+    page = _parse(out / "report.html")
+    diagram = [img for img in page.images if img["alt"] == "block diagram"]
+    assert len(diagram) == 1 and "onclick" in diagram[0]
+    style = text.split("<style>", 1)[1].split("</style>", 1)[0]
+    assert "max-height" not in style and "overflow" not in style      # no scroll box
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt install chromium)")
+def test_chromium_shows_the_whole_diagram_and_a_click_opens_it(tmp_path):
+    out = tmp_path / "run"                      # a picture wider and taller than the window
+    assert main(["run", "diagrams/theorem6.yaml", "-o", str(out), "-q", "--no-plots",
+                 "--set", "simulation.t_final=0.01", "--report"]) == 0
+    probe = """<script>
+    window.open = function (url) {
+      fetch(url).then(r => r.text()).then(t => document.body.setAttribute(
+        "data-opened", url.slice(0, 5) + " " + (t.indexOf("<svg") >= 0)));
+    };
+    window.addEventListener("load", function () {
+      var img = document.querySelector("img[alt='block diagram']"), box = img.getBoundingClientRect();
+      var clipped = false;
+      for (var el = img.parentElement; el; el = el.parentElement)
+        clipped = clipped || el.scrollHeight > el.clientHeight + 1 && el !== document.documentElement
+                  && el !== document.body;
+      document.body.setAttribute("data-size", [Math.round(box.width), Math.round(box.height),
+        img.naturalWidth, img.naturalHeight, img.parentElement.clientWidth, clipped].join(" "));
+      img.click();
+    });
+    </script>"""
+    page = out / "probe.html"
+    page.write_text((out / "report.html").read_text().replace("</body>", probe + "</body>"))
+    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
+                           f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1200,2400",
+                           "--virtual-time-budget=5000", "--dump-dom", page.as_uri()],
+                          capture_output=True, timeout=120)
+    dom = proc.stdout.decode(errors="replace")
+    import re
+    size = re.search(r'data-size="([^"]*)"', dom)
+    assert size, proc.stderr.decode(errors="replace")[-500:]
+    width, height, natural_w, natural_h, room, clipped = size.group(1).split()
+    assert clipped == "false"
+    # shown whole: scaled to the page's width, its aspect ratio kept
+    assert int(natural_w) > int(room) and abs(int(width) - int(room)) <= 1
+    assert abs(int(height) / int(width) - int(natural_h) / int(natural_w)) < 0.02
+    assert re.search(r'data-opened="blob: true"', dom)                 # the click opens it

@@ -644,3 +644,87 @@ def test_a_diagram_without_ports_is_a_subsystem_reached_by_inner_port_names(tmp_
         load_spec(str(top))
     assert str(info.value) == (f"{top}:4: connection names block 'h', which does not exist; "
                                "blocks are: g, i")
+
+
+# ---------------------------------------------------------------- names that follow a signal out
+def _declared(path: str) -> dict:
+    """signal -> its log: mapping, read from the YAML file itself (not through fwdstep)."""
+    import yaml
+    with open(path, encoding="utf-8") as fh:
+        doc = yaml.safe_load(fh)
+    return {e["signal"]: e for e in doc.get("log") or [] if isinstance(e, dict)}
+
+
+def test_labels_declared_in_a_library_file_follow_its_output_ports():
+    from fwdstep.results.plotting import signal_info
+    inner = _declared("diagrams/lib/qd_star.yaml")
+    top = _declared("diagrams/theorem6.yaml")
+    outs = {"e": "e.y", "q_d_star": "pos.y", "dq": "dq.y"}
+    d = fwdstep.load_diagram("diagrams/theorem6.yaml")
+    for port, inside in outs.items():
+        info = signal_info(d, f"qds.{port}")
+        real = signal_info(d, f"qds/{inside}")          # the flattened name: the same names
+        outer = top.get(f"qds.{port}", {})
+        want_label = outer.get("label") or inner[inside]["label"]      # the parent's wins
+        want_unit = outer.get("unit") or inner[inside]["unit"]
+        assert (info.label, info.unit) == (want_label, want_unit), port
+        assert (real.label, real.unit) == (want_label, want_unit), port
+    # Theorem 6 names qds.dq itself (with components): its declaration is the one kept
+    assert signal_info(d, "qds.dq").components == tuple(top["qds.dq"]["components"])
+    assert signal_info(d, "tq.tau").unit == _declared("diagrams/lib/torque_passive.yaml")[
+        "tau.y"]["unit"]
+
+
+def test_a_saved_run_keeps_a_subsystem_outputs_names(tmp_path):
+    from fwdstep.results.plotting import signal_info
+    from fwdstep.results.result import load_result
+    d = fwdstep.load_diagram("diagrams/theorem6.yaml", {"simulation.t_final": 0.05})
+    fwdstep.simulate(d).save(str(tmp_path / "run"))
+    loaded = load_result(str(tmp_path / "run"))
+    inner = _declared("diagrams/lib/qd_star.yaml")
+    for name in ("qds.e", "qds/e.y"):              # the port name and the flattened name
+        info = signal_info(loaded, name)
+        assert (info.label, info.unit) == (inner["e.y"]["label"], inner["e.y"]["unit"])
+
+
+HELD = """
+blocks:
+  g: {type: Gain, gain: 2, shape: [1]}
+log:
+  - {signal: g.y, label: "$y_g$", unit: V}
+ports:
+  inputs: {u: g.u}
+  outputs: {y: g.y}
+"""
+
+
+def test_a_sampled_subsystem_output_keeps_its_names(tmp_path):
+    from fwdstep.results.plotting import signal_info
+    (tmp_path / "held.yaml").write_text(HELD)
+    (tmp_path / "top.yaml").write_text("""
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: held.yaml, sample_period: 0.1}
+connections:
+  - c.y -> s.u
+simulation: {t_final: 0.2, step: 0.01}
+""")
+    d = fwdstep.load_diagram(str(tmp_path / "top.yaml"))
+    assert d.resolve("s.y") != "s/g.y"                 # the output is the hold's
+    info = signal_info(d, "s.y")
+    assert (info.label, info.unit) == ("$y_g$", "V")
+
+
+def test_a_wrong_signal_in_a_subsystem_log_is_refused_where_it_is_written(tmp_path):
+    (tmp_path / "held.yaml").write_text(HELD.replace("signal: g.y", "signal: g.z"))
+    (tmp_path / "top.yaml").write_text("""
+blocks:
+  c: {type: Constant, value: [1.0]}
+  s: {type: subsystem, file: held.yaml}
+connections:
+  - c.y -> s.u
+""")
+    with pytest.raises(WiringError) as info:
+        fwdstep.load_diagram(str(tmp_path / "top.yaml"))
+    assert str(info.value) == (f"{tmp_path / 'held.yaml'}:5: log: signal 'g.z' does not exist; "
+                               "block 's/g' has outputs: y")

@@ -391,3 +391,23 @@ def test_batch_metrics_are_each_variants_own():
          np.abs(e[tail, 0]).max()], rtol=1e-14)
     assert np.isnan(batch[1]["rms_error_norm"]) and batch[2]["error_norm_max"] == np.inf
     assert batch[3]["final_error_norm"] == pytest.approx(1e308 * np.sqrt(2), rel=1e-14)
+
+
+def test_an_integer_axis_has_integer_ticks_and_many_traces_a_short_legend(path):
+    from fwdstep.results.plotting import MAX_LEGEND_ENTRIES
+    from fwdstep.sweeps.sweep import sweep_figure
+    result = run_sweep(path, {"ell": [1, 2, 3, 4, 5], "gamma": [1.5, 2.5, 3, 4]}, workers=1)
+    assert len(result.variants) == 20
+    fig = sweep_figure(result)
+    fig.canvas.draw()
+    ell_ax, gamma_ax, traces = fig.axes[:3]
+    assert ell_ax.get_xlabel() == "ell"
+    lo, hi = ell_ax.get_xlim()
+    shown = [v for v in ell_ax.get_xticks() if lo <= v <= hi]
+    assert shown == [1, 2, 3, 4, 5]                  # not 1.0, 1.5, ..., 5.0
+    # gamma takes 1.5: its axis is not forced to whole numbers
+    lo, hi = gamma_ax.get_xlim()
+    assert any(not float(v).is_integer() for v in gamma_ax.get_xticks() if lo <= v <= hi)
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        assert legend is None or len(legend.get_texts()) <= MAX_LEGEND_ENTRIES
