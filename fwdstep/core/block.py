@@ -141,6 +141,12 @@ class Block:
     compile_with: ClassVar[str] = "numba"
     #: set by ``set_kernels``: (output kernel, derivative kernel, param names, static values)
     kernels: "Kernels | None" = None
+    #: the attributes ``finalize`` may (re)compute from the stacked ``p`` and the batch size:
+    #: everything else a block keeps outside ``p``, ``x0`` and ``values`` is part of its
+    #: structure, and variants batch together only where it is equal
+    #: (``fwdstep.structure.compiler.setup_state``); a subclass whose ``finalize`` sets more
+    #: adds their names (tests/blocks/test_contract.py checks the declaration is complete)
+    finalize_attributes: ClassVar[tuple] = ("kernels", "_unpack", "_kargs")
 
     def __init__(self, name: str, **params: Any):
         self.name = name

@@ -28,6 +28,8 @@ from fwdstep.core.block import Block
 class LinearBlock(Block):
     """Base class: subclasses declare ports and call ``set_linear`` in ``setup``."""
 
+    finalize_attributes = Block.finalize_attributes + ("_batched", "_AT", "_BT", "_CT", "_DT")
+
     def set_linear(self, A, B: dict, C: dict, D: dict | None = None, x0=None) -> None:
         """``A`` (N, N); ``B`` maps input name -> (N, size_in); ``C`` maps output name ->
         (size_out, N); ``D`` maps (output, input) -> (size_out, size_in) (missing = 0).

@@ -112,46 +112,20 @@ def _block_signature(b) -> tuple:
 
 #: block attributes that stacking handles per variant (or that never change the numbers)
 _STACKED_ATTRIBUTES = frozenset({"p", "x0", "values", "name"})
-_finalized_cache: dict = {}
 
 
 def setup_state(block) -> tuple:
     """A key of everything a block computed in ``setup`` outside ``p`` and ``x0``: private
     attributes (``self._gravity``, precomputed matrices, ...) that ``stack_blocks`` would take
-    from the first variant.  Attributes that ``finalize`` assigns are left out (they are
-    recomputed from the stacked ``p``), and so are the names a block class lists in
+    from the first variant.  Left out: what ``finalize`` recomputes from the stacked ``p``
+    (the class's declared ``finalize_attributes``) and the names a block class lists in
     ``inspection_attributes`` (kept for users to read, never used at run time).  Variants
     batch together only when these are equal, so a block that keeps a number outside ``p``
     is never given another variant's number."""
-    attributes = vars(block)
-    which = (type(block), tuple(attributes))       # the branch setup took, by what it set
-    names = _finalized_cache.get(which)
-    if names is None:
-        names = _finalized_cache[which] = _assigned_by_finalize(block)
-    shown_only = getattr(type(block), "inspection_attributes", ())   # never read at run time
-    return tuple(sorted((k, _value_key(v)) for k, v in attributes.items()
-                        if k not in _STACKED_ATTRIBUTES and k not in names
-                        and k not in shown_only))
-
-
-def _assigned_by_finalize(block) -> frozenset:
-    """The attribute names ``block.finalize`` assigns, found by running it on a copy whose
-    class records every assignment."""
-    assigned: set = set()
-
-    class Recording(type(block)):
-        def __setattr__(self, key, value):
-            assigned.add(key)
-            object.__setattr__(self, key, value)
-
-    probe = copy.copy(block)
-    probe.p = SimpleNamespace(**vars(block.p))
-    try:
-        probe.__class__ = Recording
-        probe.finalize(1)
-    except Exception:  # noqa: BLE001 - a block that cannot be probed: keep every attribute
-        return frozenset()
-    return frozenset(assigned)
+    cls = type(block)
+    skip = _STACKED_ATTRIBUTES | set(cls.finalize_attributes) | set(
+        getattr(cls, "inspection_attributes", ()))
+    return tuple(sorted((k, _value_key(v)) for k, v in vars(block).items() if k not in skip))
 
 
 def stack_blocks(variants: list) -> list:

@@ -222,3 +222,26 @@ def test_numpy_and_compiled_kernels_agree(name):
             got = backend_numba.jit_kernel(k.derivative)[0](t, x, *ins, *args)
             scale = max(1.0, float(np.max(np.abs(ref))))
             np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * scale, err_msg=name)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("batch", [1, 3])
+def test_finalize_sets_only_its_declared_attributes(name, batch):
+    """``finalize`` may set only the class's ``finalize_attributes``: the compiler batches
+    variants by every other attribute a block keeps (fwdstep.structure.compiler.setup_state),
+    so an undeclared one would be taken from the first variant for all of them."""
+    import copy
+    from types import SimpleNamespace
+    blk = _make(name)
+    assigned: set = set()
+
+    class Recording(type(blk)):
+        def __setattr__(self, key, value):
+            assigned.add(key)
+            object.__setattr__(self, key, value)
+
+    probe = copy.copy(blk)
+    probe.p = SimpleNamespace(**vars(blk.p))
+    probe.__class__ = Recording
+    probe.finalize(batch)
+    assert assigned <= set(type(blk).finalize_attributes), sorted(assigned)

@@ -168,6 +168,7 @@ def test_a_number_kept_outside_p_splits_the_batch():
     class Hidden(Block):
         """Test-only: y = k u with k kept outside p (a block written carelessly)."""
         params = {"k": Param("float"), "g": Param("float", 1.0)}
+        finalize_attributes = Block.finalize_attributes + ("_g_first",)   # declared, not probed
 
         def setup(self, k, g):
             self.declare_input("u", (2,))
