@@ -698,6 +698,12 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
             if not getattr(cfg, key) > 0:
                 raise ConfigError(f"simulation.{key} must be positive, got {raw[key]!r}",
                                   file=file, line=_line(raw, key))
+    if "stability_check" in raw:
+        if not isinstance(raw["stability_check"], bool):
+            raise ConfigError(f"simulation.stability_check must be true or false, got "
+                              f"{raw['stability_check']!r}", file=file,
+                              line=_line(raw, "stability_check"))
+        cfg.stability_check = raw["stability_check"]
     if "bound" in raw:
         cfg.bound = number("bound")
         if not cfg.bound > 0:
