@@ -238,7 +238,7 @@ CASES = [
      "block 'int' has no input port 'x'; input ports are: u"),
     ("unknown_simulation_setting", ConfigError, 3,
      "simulation has no setting 'dt'; settings are: t_final, step, solver, log_every, bound, "
-     'backend, rtol, atol'),
+     'backend, rtol, atol, stability_check'),
     ("unknown_solver", ConfigError, 3,
      "simulation.solver 'rk45' is unknown; solvers are: euler, heun, rk4, dop853, radau, lsoda"),
     ("unknown_source_port", WiringError, 5,
