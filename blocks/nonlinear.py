@@ -264,6 +264,12 @@ class RateLimiter(Block):
         self.set_kernels(output=out, derivative=rate_limiter_derivative,
                          params=("time_constant", "rising", "falling"))
 
+    def state_eigenvalues(self):
+        """Inside the rate limits x' = (u - x) / T: every element's eigenvalue is -1/T (the
+        fastest regime; at a limit x' is constant)."""
+        T = self.p.time_constant.reshape(-1, 1)
+        return np.broadcast_to(-1.0 / T, (T.shape[0], self.n_states)).astype(complex)
+
 
 @register
 class Friction(Block):

@@ -28,6 +28,7 @@ import numpy as np
 
 from fwdstep.core.block import Block, Param
 from fwdstep.core.errors import ParameterError
+from fwdstep.core.native import captured_stderr
 from fwdstep.core.registry import register
 
 from . import rigid_body as rb
@@ -113,9 +114,11 @@ def _load(path: str, locked: tuple, gravity: float):
     that differ only in numbers batch together)."""
     import pinocchio as pin
     try:
-        full = pin.buildModelFromUrdf(path)
+        with captured_stderr() as log:        # urdfdom's C++ log lines, with build paths
+            full = pin.buildModelFromUrdf(path)
     except (RuntimeError, ValueError) as exc:
-        return f"cannot read URDF {path!r}: {str(exc).splitlines()[0] if str(exc) else exc}"
+        return (f"cannot read URDF {path!r}: "
+                f"{log.reason or (str(exc).splitlines()[0] if str(exc) else exc)}")
     unknown = [j for j in locked if not full.existJointName(j)]
     if unknown:
         names = ", ".join(full.names[1:])

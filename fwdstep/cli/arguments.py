@@ -265,7 +265,24 @@ def _hold_signals():
     return release
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """fwdstep's own warnings as one line on stderr; others as Python shows them."""
+    import warnings
+    from fwdstep.core.errors import FwdstepWarning, one_line
+    if issubclass(category, FwdstepWarning):
+        sys.stderr.write(f"fwdstep: warning: {one_line(str(message))}\n")
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def _main(argv=None) -> int:
+    import warnings
+    with warnings.catch_warnings():      # restored when the command ends (tests call main)
+        warnings.showwarning = _show_warning
+        return _command(argv)
+
+
+def _command(argv=None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -140,8 +140,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         with signals.deferred():                  # a signal now: the results still land
             written = result.write_files(out.dir)
             if plots and len(result.t) and code != EXIT_BLOCK:
-                from fwdstep.results.plotting import plot_result
-                written += plot_result(result, out.dir, formats=formats)
+                code = _figures(result, out.dir, formats, code)
             written = out.commit()
     except OSError as exc:
         _err(f"cannot write results to {out.requested}: {exc}")
@@ -161,6 +160,20 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
                      f"{m['tail_error_max_abs']:.3e}; RMS |e|_2 = {m['rms_error_norm']:.3e}")
         print(line)
         print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
+    return code
+
+
+def _figures(result, folder: str, formats, code: int) -> int:
+    """Draw the run's figures into ``folder``, where its data already are: whatever goes
+    wrong while drawing costs the figures, never the data (they are committed with what was
+    drawn), and is one line; exit 2 if the run itself was ok."""
+    from fwdstep.results.plotting import plot_result
+    try:
+        plot_result(result, folder, formats=formats)
+    except Exception as exc:  # noqa: BLE001 - a figure must never lose a finished run
+        _err(f"the figures could not be drawn ({type(exc).__name__}: "
+             f"{' '.join(str(exc).split())[:200]}); the run's data are written")
+        return code or EXIT_INPUT
     return code
 
 

@@ -11,10 +11,11 @@ import time as _time
 import numpy as np
 
 from fwdstep.core import signals
-from fwdstep.core.errors import ConfigError, SimulationError
+from fwdstep.core.errors import ConfigError, DiagramError, SimulationError
 from fwdstep.results.result import Result
 from fwdstep.run import finite
-from fwdstep.run.evaluate import _locate_failure, _make_evaluator, initial_state
+from fwdstep.run.evaluate import (_locate_failure, _make_evaluator, check_shapes,
+                                  initial_state)
 from fwdstep.run.events import apply_updates, plan_events
 from fwdstep.run.outcome import (SimulationInterrupted, _divergence_message, _finish, _reason,
                                  _rows_recorded)
@@ -36,9 +37,6 @@ def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
     events = plan_events(d, h, n_steps)   # the NumPy path's split steps, run in the loop
     prog = backend_numba.build_program(d, n_rows, events)
-    with signals.deferred():                  # a signal during numba's compile is acted on
-        prog.compile()                        # after it (raised inside numba's callbacks it
-    late = signals.pending()                  # was swallowed and broke the function)
     B = d.batch
     x = prog.xn                               # (B, N); each variant runs on its own row
     x[...] = d.x0
@@ -51,10 +49,15 @@ def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     next_report = wall0 + 1.0
     with np.errstate(all="ignore"):
         try:
-            if late is not None:
-                raise late
             x[...] = (initial_state(d, event=events.start if events is not None else None)
                       if x0 is None else np.asarray(x0, dtype=float))
+            check_shapes(d, 0.0, x)           # on the NumPy path, before numba compiles:
+            # a block that raises or returns a wrong shape is named, not left to numba
+            with signals.deferred():          # a signal during numba's compile is acted on
+                _compile(prog, d)             # after it (raised inside numba's callbacks it
+            late = signals.pending()          # was swallowed and broke the function)
+            if late is not None:
+                raise late
             sample = _sampler(d, events, x) if events is not None and events.discrete else None
             while n < n_steps:
                 with signals.held():      # a signal during the chunk ends the run after
@@ -120,7 +123,10 @@ def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
         except SimulationError as exc:    # an object-mode block's error: already says where
             status, message, error = "error", str(exc), exc
             row = _rows_recorded(prog.t_log, rows, row)
-        except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
+        except DiagramError:              # numba cannot compile a kernel: bad input
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a SystemExit in a kernel too: the
+            # block's error (status error, data kept), never the end of fwdstep with exit 0
             error = _locate_failure(d, t, x.copy(), exc)
             error.__cause__ = exc
             status, message = "error", str(error)
@@ -128,6 +134,38 @@ def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
     prog.seal()
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
                    x, n, t, wall0, reasons)
+
+
+def _compile(prog, d: CompiledDiagram) -> None:
+    """``prog.compile()``; numba's refusal of a kernel (a construct it cannot type) becomes
+    one line naming the block, the kernel and numba's reason, with the way out."""
+    try:
+        prog.compile()
+    except Exception as exc:
+        if not type(exc).__module__.startswith("numba"):
+            raise
+        raise ConfigError(_numba_refusal(d, exc), file=d.file) from None
+
+
+def _numba_refusal(d: CompiledDiagram, exc) -> str:
+    import re
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(exc))
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    reason = next((ln for ln in lines if not ln.startswith(("Failed in", "During:", "File ",
+                                                            "^", "- ", "Resolution failure"))
+                   and "pipeline" not in ln), lines[0] if lines else type(exc).__name__)
+    named = set(re.findall(r"<function ([\w.<>]+) at ", text))
+    who = ""
+    for step in d.schedule:
+        k = step.block.kernels
+        fns = [f for f in ((k.output, k.derivative) if k is not None else ()) if f is not None]
+        hit = [f.__qualname__ for f in fns if f.__qualname__ in named]
+        if hit:
+            who = (f"block '{step.block.name}' ({step.block.type_name}): kernel "
+                   f"{hit[0]} ")
+            break
+    return (f"{who or 'a kernel '}cannot be compiled by numba ({type(exc).__name__}: "
+            f"{reason})"[:400] + "; run the diagram with backend numpy")
 
 
 def _sampler(d: CompiledDiagram, events, x):

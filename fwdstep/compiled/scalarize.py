@@ -639,10 +639,11 @@ def run_traced(rebinder: Rebinder, fn, *args):
     try:
         with np.errstate(all="ignore"):
             return rebinder.function(fn)(*args)
-    except Untraceable:
+    except (Untraceable, KeyboardInterrupt):
         raise
-    except (TypeError, ValueError, AttributeError, IndexError, ZeroDivisionError,
-            OverflowError, NotImplementedError, RecursionError) as exc:
+    except BaseException as exc:  # noqa: BLE001 - tracing is a try: whatever the kernel
+        # raises on symbols (an operation the tracer lacks, or the kernel's own error, even
+        # a SystemExit) leaves it to the array code, whose run names the block if it fails
         raise Untraceable(f"{type(exc).__name__}: {exc}") from None
 
 

@@ -309,6 +309,16 @@ class Block:
         inputs at t0."""
         return self.x0
 
+    def state_eigenvalues(self) -> "np.ndarray | None":
+        """The eigenvalues of this block's own dynamics (the Jacobian of ``derivative`` with
+        respect to ``x``, inputs held), where the block knows them: a complex array
+        (1 or B, k), one row per variant; None (the default) when it does not.  Before a
+        fixed-step run every block's eigenvalues are checked against the solver's
+        stability region (``fwdstep.structure.stiffness``).  A block offering a
+        ``linear_form`` needs nothing more (its A is used); a nonlinear block may give the
+        eigenvalues of its fastest regime (``RateLimiter``: -1/time_constant)."""
+        return None
+
     def finalize(self, batch: int) -> None:
         """Called once after parameters are stacked for a batch of ``batch`` variants;
         blocks may pick fast paths here (never during a run)."""

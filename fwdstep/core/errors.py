@@ -123,5 +123,11 @@ class DivergenceError(SimulationError):
     """A state became NaN/inf or exceeded the configured bound."""
 
 
+class FwdstepWarning(UserWarning):
+    """Something the user should know that does not stop the work (a step that leaves a
+    block's fastest mode unresolved).  The CLI prints it as one line
+    ``fwdstep: warning: <message>``; through the API it is a Python warning."""
+
+
 class BlockRuntimeError(SimulationError):
     """A block's ``output`` or ``derivative`` raised; chained to the original exception."""

@@ -31,6 +31,7 @@ class SimulationConfig:
     backend: str = "numpy"
     rtol: float = 1e-8           # dop853 / radau / lsoda only (fwdstep.run.ivp)
     atol: float = 1e-10
+    stability_check: bool = True   # refuse a fixed step outside a block's stability region
     defaulted: tuple = _internal(())       # t_final/step the diagram did not give (the run's header says)
     given: bool = _internal(True)          # the diagram has a simulation: section
 

@@ -6,6 +6,7 @@ prove it.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,51 @@ TABLEAUX = {
     "rk4": Tableau("rk4", 4, a=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),
                    b=(1 / 6, 1 / 3, 1 / 3, 1 / 6), c=(0.0, 0.5, 0.5, 1.0)),
 }
+
+
+def amplification(tableau: Tableau, z):
+    """The stability function R(z) = 1 + z b^T (I - z A)^-1 1 of an explicit tableau at the
+    complex numbers ``z``: one step of y' = lambda y multiplies y by R(h lambda).  For an
+    explicit method it is the polynomial 1 + sum_k z^k b^T A^(k-1) 1 (A strictly lower
+    triangular, so (I - z A)^-1 = sum_k (z A)^k ends at k = stages - 1)."""
+    s = tableau.stages
+    A = np.zeros((s, s))
+    for i, row in enumerate(tableau.a):
+        A[i, :len(row)] = row
+    b = np.asarray(tableau.b)
+    coeffs, v = [1.0], np.ones(s)
+    for _ in range(s):
+        coeffs.append(float(b @ v))
+        v = A @ v
+    z = np.asarray(z, dtype=complex)
+    r = np.zeros_like(z)
+    for c in reversed(coeffs):                  # Horner
+        r = r * z + c
+    return r
+
+
+def stable_step(tableau: Tableau, lam: complex) -> float:
+    """The largest step h with |R(h' lam)| <= 1 for every 0 < h' <= h: how far the ray
+    through ``lam`` (Re lam < 0) stays in the method's stability region (rk4 on the
+    negative real axis: 2.785293563405282 / |lam|).  Found by scanning the ray and
+    bisecting its first exit to 1e-12 relative."""
+    lam = complex(lam)
+    if lam.real >= 0.0 or lam == 0:
+        return math.inf
+    unit = lam / abs(lam)
+    radius = np.linspace(0.0, 8.0, 4001)[1:]  # every explicit region up to 4 stages lies in |z| < 8
+    outside = np.abs(amplification(tableau, radius * unit)) > 1.0 + 1e-12
+    if not outside.any():
+        return math.inf
+    k = int(np.argmax(outside))
+    lo, hi = (radius[k - 1] if k else 0.0), radius[k]
+    while hi - lo > 1e-12 * hi:
+        mid = 0.5 * (lo + hi)
+        if abs(amplification(tableau, mid * unit)) > 1.0 + 1e-12:
+            hi = mid
+        else:
+            lo = mid
+    return lo / abs(lam)
 
 
 #: adaptive methods of scipy.integrate.solve_ivp (``fwdstep.run.ivp``): name -> scipy's name.

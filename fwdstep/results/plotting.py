@@ -62,17 +62,45 @@ def subscript(label: str, sub: str) -> str:
     return f"{label}$_{{{sub}}}$"
 
 
+def literal_mathtext(fig) -> None:
+    """Replace, in every Text artist of ``fig``, a text matplotlib's mathtext parser refuses
+    by the same text with its dollar signs escaped (shown as written)."""
+    from matplotlib.text import Text
+    for artist in fig.findobj(Text):
+        text = artist.get_text()
+        if isinstance(text, str) and text.count("$") >= 2:
+            fixed = safe_label(text)
+            if fixed is not text:
+                artist.set_text(fixed)
+
+
 def safe_label(label: str) -> str:
-    """``label`` if matplotlib can typeset it, else the same text shown literally (a typo in
-    a diagram's mathtext must not stop the figures)."""
-    if label.count("$") < 2:
+    """``label`` if matplotlib can typeset it, else the same text with the dollar signs of
+    each math part it cannot typeset escaped, so that part shows literally (a typo in a
+    diagram's mathtext must not stop the figures); ``label`` itself when nothing changes."""
+    if "\n" in label:                       # matplotlib typesets each line on its own
+        lines = label.split("\n")
+        fixed = [safe_label(line) for line in lines]
+        return label if all(a is b for a, b in zip(fixed, lines)) else "\n".join(fixed)
+    pieces = re.split(r"(?<!\\)\$", label)
+    if len(pieces) < 3 or len(pieces) % 2 == 0:          # plain text for matplotlib
         return label
     from matplotlib.mathtext import MathTextParser
-    try:
-        MathTextParser("path").parse(label)
+    parser = MathTextParser("path")
+
+    def typesets(text: str) -> bool:
+        try:
+            parser.parse(text)
+            return True
+        except ValueError:
+            return False
+
+    if typesets(label):
         return label
-    except ValueError:
-        return label.replace("$", r"\$")
+    out = pieces[0]
+    for math, after in zip(pieces[1::2], pieces[2::2]):
+        out += (f"${math}$" if typesets(f"${math}$") else f"\\${math}\\$") + after
+    return out if typesets(out) else label.replace("$", r"\$")
 
 
 def signal_info(source, name: str, typeset: bool = True) -> SignalInfo:
@@ -288,6 +316,11 @@ def finish_figure(fig, title: str, subtitle: str = "") -> None:
 
 
 def figure_bytes(fig, fmt: str = "png") -> bytes:
+    """The figure drawn as ``fmt``.  Every figure fwdstep writes passes here, so here every
+    text of it (titles, axis labels, legends) whose mathtext matplotlib cannot typeset is
+    shown literally instead (``literal_mathtext``): a typo the load-time check cannot see
+    (an unknown ``\\command``) costs its dollar signs, never the figure or the run."""
+    literal_mathtext(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format=fmt, dpi=DPI, metadata={"Software": "fwdstep"} if fmt == "png"
                 else None)

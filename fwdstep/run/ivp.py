@@ -25,11 +25,11 @@ import time as _time
 import numpy as np
 
 from fwdstep.structure.compiler import CompiledDiagram
-from fwdstep.core.errors import BlockRuntimeError, SimulationError
+from fwdstep.core.errors import SimulationError
 from fwdstep.run.events import apply_updates, plan_events
 from fwdstep.results.result import Result
 from fwdstep.core.solvers import IVP_METHODS
-from fwdstep.run.evaluate import _block_error, initial_state
+from fwdstep.run.evaluate import _locate_at, check_shapes, initial_state
 from fwdstep.run.outcome import SimulationInterrupted, _divergence_message, _finish
 
 #: tolerances when a diagram gives none
@@ -102,6 +102,7 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
         try:
             x[...] = (initial_state(d, event=plan.start if plan is not None else None)
                       if x0 is None else np.asarray(x0, dtype=float))
+            check_shapes(d, 0.0, x)
             g = 0                                  # next grid row to record
             for a, b, lo, hi, event in segments:
                 t = a
@@ -162,32 +163,10 @@ def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None
             status, message, error = "error", str(exc), exc
         except finite.NonFiniteOutput as exc:     # an unrecorded output: block and port
             row, status, message, x = exc.stop
-        except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
-            error = _locate(d, t, x, exc, _block_error)
+        except BaseException as exc:  # noqa: BLE001 - wrapped with block, time and inputs
+            error = _locate_at(d, t, x, exc)
             error.__cause__ = exc
             status, message = "error", str(error)
     # _finish reports a divergence at its t + step: pass the time it happened minus a step
     return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
                    max(steps - 1, 0), t - h, wall0)
-
-
-def _locate(d, t, x, exc, block_error) -> BlockRuntimeError:
-    """Which block raised: the outputs and derivatives at (t, x), one block at a time."""
-    sig: list = [None] * len(d.signal_names)
-    for i, arr in d.constant_signals.items():
-        sig[i] = arr
-    with np.errstate(all="ignore"):
-        for what, steps in (("output", d.schedule), ("derivative", d.stateful)):
-            for st in steps:
-                u = tuple(sig[i] for i in st.inputs)
-                xs = x[:, st.state] if st.state is not None else x[:, 0:0]
-                try:
-                    if what == "output":
-                        for i, v in zip(st.outputs, st.block.output(t, xs, u)):
-                            sig[i] = v
-                    else:
-                        st.block.derivative(t, xs, u)
-                except Exception as inner:  # noqa: BLE001 - the user's block failed
-                    return block_error(st, inner, t, u)
-    return BlockRuntimeError(f"evaluation failed at t = {t:.6g}: {type(exc).__name__}: {exc}",
-                             time=t)

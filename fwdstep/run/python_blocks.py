@@ -126,12 +126,16 @@ class _Mismatch(Exception):
 
 
 def _copy(value, shape: tuple) -> np.ndarray:
-    """``value`` (broadcast to ``shape``) as a new C-contiguous float64 array: never a view
-    of the loop's buffers or of the block's own arrays.  ValueError if it does not fit."""
+    """``value`` as a new C-contiguous float64 array of exactly ``shape`` (one variant:
+    (1, *declared)): never a view of the loop's buffers or of the block's own arrays.
+    ValueError if its shape is another one: never broadcast, a (1, 1) result for a (1, 3)
+    port is the block's error, not three equal columns."""
     if type(value) is np.ndarray and value.shape == shape and value.dtype == np.float64:
-        return value.copy()         # the usual case, without broadcast_to's ~5 us
-    return np.array(np.broadcast_to(np.asarray(value, dtype=np.float64), shape),
-                    dtype=np.float64, order="C")
+        return value.copy()
+    value = np.asarray(value, dtype=np.float64)
+    if value.shape != shape:
+        raise ValueError(f"shape {value.shape}, not {shape}")
+    return np.array(value, dtype=np.float64, order="C")
 
 
 def _failed(entry, blk, exc, t, u, v) -> None:
@@ -143,7 +147,7 @@ def _failed(entry, blk, exc, t, u, v) -> None:
     error = exc
     if isinstance(exc, _Mismatch):
         error = BlockRuntimeError(str(exc), time=t, block=blk.name)
-    elif isinstance(exc, Exception):
+    elif not isinstance(exc, KeyboardInterrupt):      # a SystemExit too: the block's error
         error = _block_error(SimpleNamespace(block=blk), exc, t, u)
     if error is not exc:
         if entry.batch > 1:

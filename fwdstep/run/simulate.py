@@ -45,7 +45,7 @@ from fwdstep.run import finite
 from fwdstep.core import signals
 from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS
-from fwdstep.run.evaluate import _locate_failure, initial_state
+from fwdstep.run.evaluate import _locate_failure, check_shapes, initial_state
 from fwdstep.run.ivp import simulate_ivp
 from fwdstep.run.outcome import SimulationInterrupted, _divergence_message, _finish, _reason
 
@@ -145,6 +145,7 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
         try:
             x[...] = (initial_state(d, event=events.start if events is not None else None)
                       if x0 is None else np.asarray(x0, dtype=float))
+            check_shapes(d, 0.0, x)
             for n in range(n_steps):
                 t = n * h
                 if n in special:              # a step that touches a discontinuity
@@ -233,7 +234,8 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
             error.signum = getattr(exc, "signum", 2)
         except SimulationError as exc:    # a discrete algebraic loop: already says where
             status, message, error = "error", str(exc), exc
-        except Exception as exc:  # noqa: BLE001 - wrapped with block, time and inputs
+        except BaseException as exc:  # noqa: BLE001 - a SystemExit in a kernel too: the
+            # block's error (status error, data kept), never the end of fwdstep with exit 0
             error = _locate_failure(d, t, x, exc)
             error.__cause__ = exc
             status, message = "error", str(error)

@@ -20,6 +20,7 @@ from fwdstep.core.errors import ConfigError, DiagramError, WiringError
 from fwdstep.structure.graph import Structure, build_structure, instantiate
 from fwdstep.core.linear import fusable
 from fwdstep.structure.spec import DiagramSpec, load_spec
+from fwdstep.structure.stiffness import check_step
 
 MAX_TOTAL_STATES = 2_000_000
 
@@ -283,10 +284,12 @@ def compile_structure(structure: Structure, batch: int, params: list) -> Compile
         x0[:, step.state] = np.broadcast_to(step.block.x0, (batch, step.block.n_states))
     logged = _logged_signals(spec, index)
     _check_declared_signals(spec, index)
-    return CompiledDiagram(spec=spec, structure=structure, batch=batch, schedule=schedule,
-                           stateful=stateful, n_states=offset, x0=x0, signal_names=names,
-                           signal_shapes=shapes, signal_index=index, constant_signals=constants,
-                           logged=logged, variant_parameters=params)
+    d = CompiledDiagram(spec=spec, structure=structure, batch=batch, schedule=schedule,
+                        stateful=stateful, n_states=offset, x0=x0, signal_names=names,
+                        signal_shapes=shapes, signal_index=index, constant_signals=constants,
+                        logged=logged, variant_parameters=params)
+    check_step(d)                   # a step outside a block's stability region: refused
+    return d
 
 
 def _check_declared_signals(spec: DiagramSpec, index: dict) -> None:

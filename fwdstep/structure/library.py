@@ -45,20 +45,33 @@ def load_library() -> dict[str, type]:
     return REGISTRY
 
 
+#: installed plugins that failed to load: name -> why (their block types are missing)
+_broken_entry_points: dict = {}
+
+
 def _load_entry_points() -> None:
+    """Register the blocks of every installed ``fwdstep.blocks`` entry point.  One that fails
+    to load is reported once, naming the plugin (a ``FwdstepWarning``: the CLI's line
+    ``fwdstep: warning: ...``), and left out: it is the installation's fault, not the
+    diagram's, and a diagram that does not use its blocks runs; one that does is told, with
+    its unknown block type, which plugin failed."""
+    import warnings
     from importlib.metadata import entry_points
+    from fwdstep.core.errors import FwdstepWarning, one_line
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:
             obj = ep.load()
-        except ConfigError:
+            if isinstance(obj, type) and issubclass(obj, Block) and \
+                    REGISTRY.get(obj.__name__) is not obj:
+                register(obj)
+        except KeyboardInterrupt:
             raise
-        except Exception as exc:  # noqa: BLE001 - reported in one line, naming the plugin
-            raise ConfigError(f"block plugin '{ep.name}' ({ep.value}, entry point "
-                              f"{ENTRY_POINT_GROUP}) failed to load: "
-                              f"{type(exc).__name__}: {exc}") from None
-        if isinstance(obj, type) and issubclass(obj, Block) and \
-                REGISTRY.get(obj.__name__) is not obj:
-            register(obj)
+        except BaseException as exc:  # noqa: BLE001 - a SystemExit on import too
+            why = one_line(f"{type(exc).__name__}: {getattr(exc, 'message', exc)}")[:300]
+            _broken_entry_points[ep.name] = why
+            warnings.warn(FwdstepWarning(
+                f"the installed block plugin '{ep.name}' ({ep.value}, entry point "
+                f"{ENTRY_POINT_GROUP}) failed to load and is left out: {why}"), stacklevel=2)
 
 
 def load_plugins(paths) -> list:
@@ -121,5 +134,11 @@ def lookup(type_name: str):
         lowered = {k.lower(): k for k in reg}
         if str(type_name).lower() in lowered:
             close = [lowered[str(type_name).lower()]]
-    hint = f"; did you mean '{close[0]}'?" if close else "; run 'fwdstep blocks' for the list"
+    hint = (f"; did you mean '{close[0]}'?" if close else
+            "; run 'fwdstep blocks' for the list; block types of your own are added with "
+            "--plugin FILE.py (docs/writing-blocks.md)")
+    if _broken_entry_points:
+        hint += "; the installed block plugin " + ", ".join(
+            f"'{name}' ({why})" for name, why in _broken_entry_points.items()) + \
+            " failed to load"
     raise UnknownBlockTypeError(f"unknown block type '{type_name}'{hint}")

@@ -112,6 +112,7 @@ def diagram_schema() -> dict:
     simulation = {key: NUMBER for key in SIMULATION_KEYS}
     simulation["solver"] = {"enum": list(SOLVER_NAMES)}
     simulation["backend"] = {"enum": list(BACKENDS)}
+    simulation["stability_check"] = {"type": "boolean"}
     properties = {
         "description": {"type": "string"},
         "parameters": {"type": "object", "propertyNames": {"pattern": NAME},

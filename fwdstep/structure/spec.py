@@ -31,6 +31,7 @@ from fwdstep.core.errors import (ConfigError, DiagramError, ExpressionError, Par
                      YamlError)
 from fwdstep.core.expressions import MAX_ARRAY_SIZE, evaluate, names_in
 from fwdstep.structure.library import lookup
+from fwdstep.core.mathtext import problem as mathtext_problem
 from fwdstep.core.settings import BACKENDS, SIMULATION_KEYS, SOLVER_NAMES, SimulationConfig
 from fwdstep.structure.sampled import sample_subsystem
 from fwdstep.structure.shapes import infer_shapes
@@ -576,6 +577,11 @@ def signal_entry(entry, info: dict, where: str, file: str, line) -> Any:
     meta = {"label": None if entry.get("label") is None else str(entry["label"]),
             "unit": str(entry.get("unit") or ""),
             "components": None if comps is None else [str(c) for c in comps]}
+    texts = [("label", meta["label"]), ("unit", meta["unit"])] + [
+        ("components", c) for c in meta["components"] or ()]
+    for key, text in texts:
+        check_figure_text(text, f"{where}: the {key[:-1] if key == 'components' else key} "
+                          f"of {entry['signal']}", file, _line(entry, key) or line)
     merge_signal_info(info, str(entry["signal"]), meta)
     return entry["signal"]
 
@@ -584,6 +590,19 @@ def merge_signal_info(info: dict, key: str, meta: dict) -> None:
     """``info[key]`` takes what ``meta`` declares (its non-empty label, unit, components)."""
     old = info.setdefault(key, {"label": None, "unit": "", "components": None})
     old.update({k: v for k, v in meta.items() if v})
+
+
+def check_figure_text(text: str | None, what: str, file: str, line) -> None:
+    """Refuse a text figures will show whose mathtext matplotlib could not typeset (a brace
+    never closed, a ^ with nothing after it), at load time with file and line: a typo must
+    not wait for the end of a run (fwdstep.core.mathtext; no matplotlib imported here)."""
+    if not text:
+        return
+    why = mathtext_problem(text)
+    if why is not None:
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        raise ConfigError(f"{what} {shown!r} is not valid mathtext: {why} (mathtext goes "
+                          "between two $; write \\$ for a dollar sign)", file=file, line=line)
 
 
 def _read_document(path: str, cache: dict | None = None) -> LineDict:
@@ -698,6 +717,12 @@ def _simulation(doc: LineDict, ns: dict, file: str) -> SimulationConfig:
             if not getattr(cfg, key) > 0:
                 raise ConfigError(f"simulation.{key} must be positive, got {raw[key]!r}",
                                   file=file, line=_line(raw, key))
+    if "stability_check" in raw:
+        if not isinstance(raw["stability_check"], bool):
+            raise ConfigError(f"simulation.stability_check must be true or false, got "
+                              f"{raw['stability_check']!r}", file=file,
+                              line=_line(raw, "stability_check"))
+        cfg.stability_check = raw["stability_check"]
     if "bound" in raw:
         cfg.bound = number("bound")
         if not cfg.bound > 0:
@@ -874,6 +899,8 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
     for name, meta in signal_info.items():      # by the block port each name resolves to
         merge_signal_info(declared, level.aliases.get(name, name), meta)
     signal_info = declared
+    check_figure_text(str(doc.get("description") or ""), "the description", path,
+                      _line(doc, "description"))
     spec = DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,

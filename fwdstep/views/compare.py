@@ -21,7 +21,7 @@ from __future__ import annotations
 import csv
 import io
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,10 +43,16 @@ class Run:
     label: str
     result: Result
     variant: int | None = None
+    #: signal -> (factor, unit it was recorded in): its values converted into the first
+    #: run's unit (``unit_conversions``)
+    converted: dict = field(default_factory=dict)
 
     def data(self, name: str) -> np.ndarray:
         arr = self.result[name]
-        return arr[:, self.variant] if self.variant is not None else arr
+        arr = arr[:, self.variant] if self.variant is not None else arr
+        if name in self.converted:
+            arr = arr * self.converted[name][0]
+        return arr
 
     def metrics(self) -> dict:
         m = self.result.metrics()
@@ -240,10 +246,33 @@ def compare(sources, signals=None, labels=None) -> Comparison:
                                       f"{', '.join(run.result.names)}")
     if not signals:
         raise OutputError("the runs have no signal in common to compare; name one with --signal")
+    unit_conversions(runs, signals)
     diffs = {s: [difference(runs[0], other, s) for other in runs[1:]] for s in signals}
     table = metrics_table(runs, diffs)
     figure = comparison_figure(runs, signals, diffs)
     return Comparison(runs, signals, diffs, table, figure)
+
+
+def unit_conversions(runs: list, signals: list) -> None:
+    """Each run's signals in the first run's unit: a signal recorded in deg in one run and
+    in rad in the other is converted (``fwdstep.results.units``: angles, lengths, times,
+    forces and their products and quotients) before it is overlaid and subtracted; units
+    fwdstep cannot convert (rad against N m, or a unit it does not know) refuse the
+    comparison of that signal, never a difference in one run's unit."""
+    from fwdstep.results.units import factor
+    for name in signals:
+        unit = signal_info(runs[0].result, name, typeset=False).unit
+        for run in runs[1:]:
+            other = signal_info(run.result, name, typeset=False).unit
+            f = factor(other, unit)
+            if f is None:
+                raise OutputError(
+                    f"signal {name} is in {other} in {run.label} but in {unit} in "
+                    f"{runs[0].label}; fwdstep cannot convert {other} into {unit}, so it does "
+                    "not take their difference (compare the runs' other signals with "
+                    "--signal, or record this one in one unit)")
+            if f != 1.0:
+                run.converted[name] = (f, other)
 
 
 def metrics_table(runs: list, diffs: dict) -> list:
@@ -293,8 +322,10 @@ def comparison_figure(runs: list, signals: list, diffs: dict):
         for k, run in enumerate(runs):
             flat = run.data(name).reshape(len(run.result.t), -1)
             for j in range(flat.shape[1]):
+                note = (f" ({run.converted[name][1]} → {info.unit})"
+                        if name in run.converted else "")
                 over.plot(run.result.t, flat[:, j], color=colors[k], ls=styles[j], lw=1.1,
-                          label=run.label + (f", {comps[j]}" if comps[j] else ""))
+                          label=f"{run.label}{note}" + (f", {comps[j]}" if comps[j] else ""))
             if k:
                 d = diffs[name][k - 1].reshape(len(t_ref), -1)
                 for j in range(d.shape[1]):

@@ -254,7 +254,15 @@ def feedback_edges(nodes: list, edges: list) -> set:
 
 # ---------------------------------------------------------------------------- graphviz
 def _id(text: str) -> str:
-    return "n_" + re.sub(r"[^A-Za-z0-9_]", "_", text)
+    """A DOT identifier for a block or frame name, one per name (injective): letters and
+    digits stay, '_' becomes '__' and any other character '_x<hex>_', so the subsystem
+    block 'a/b' (n_a_x2f_b) and the top-level block 'a_b' (n_a__b) stay two nodes."""
+    return "n_" + _escape_id(text)
+
+
+def _escape_id(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]", lambda m: "__" if m.group() == "_"
+                  else f"_x{ord(m.group()):x}_", text)
 
 
 def diagram_dot(picture: Picture) -> str:
@@ -295,7 +303,7 @@ def diagram_dot(picture: Picture) -> str:
 
 
 def _pid(port: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_]", "_", port)
+    return _escape_id(port)
 
 
 def _dot_escape(text: str) -> str:

@@ -75,7 +75,8 @@ CASES = [
     ("empty", YamlError, 1,
      "the file is empty; a diagram needs at least a 'blocks:' section"),
     ("escape_in_block_type", UnknownBlockTypeError, 3,   # "\e" in YAML: shown, never sent
-     "unknown block type 'Gain\\x1b[32m ok\\x1b[0m'; run 'fwdstep blocks' for the list"),
+     "unknown block type 'Gain\\x1b[32m ok\\x1b[0m'; run 'fwdstep blocks' for the list; "
+     "block types of your own are added with --plugin FILE.py (docs/writing-blocks.md)"),
     ("expression_overflow", ExpressionError, 5,
      "simulation.step: expression '1e400' is not finite"),
     ("forbidden_attribute", ExpressionError, 4,
@@ -238,7 +239,7 @@ CASES = [
      "block 'int' has no input port 'x'; input ports are: u"),
     ("unknown_simulation_setting", ConfigError, 3,
      "simulation has no setting 'dt'; settings are: t_final, step, solver, log_every, bound, "
-     'backend, rtol, atol'),
+     'backend, rtol, atol, stability_check'),
     ("unknown_solver", ConfigError, 3,
      "simulation.solver 'rk45' is unknown; solvers are: euler, heun, rk4, dop853, radau, lsoda"),
     ("unknown_source_port", WiringError, 5,

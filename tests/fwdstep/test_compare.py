@@ -176,3 +176,44 @@ def test_sweep_variants_compare_by_their_real_names_and_equal_a_run(tmp_path, ca
     assert main(["compare", f"{sweep}@0,x"]) == 2
     assert capsys.readouterr().err == (f"fwdstep: '{sweep}@0,x': after '@' come variant "
                                        f"numbers, e.g. {sweep}@3 or {sweep}@3,7\n")
+
+
+# ------------------------------------------------------------------ units
+def _in_unit(tmp_path, name, unit, scale):
+    """The decay x(t) = exp(-t) x0 recorded in ``unit``, its values x0 * scale."""
+    text = DECAY.format(t_final=2, step=0.01).replace("unit: m", f"unit: '{unit}'").replace(
+        "initial: [1.0, -2.0]", f"initial: [{scale!r}, {-2 * scale!r}]")
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text)
+    out = tmp_path / name
+    assert main(["run", str(path), "-o", str(out), "-q", "--no-plots"]) == 0
+    return str(out)
+
+
+@pytest.mark.parametrize("unit, scale", [("deg", 180 / np.pi), ("mrad", 1e3),
+                                         ("rad s$^{-1}$ s", 1.0)])
+def test_a_signal_in_another_unit_is_converted_before_the_difference(tmp_path, unit, scale):
+    """The same motion in rad and in deg: their difference is zero, not 57 x the motion."""
+    a = _in_unit(tmp_path, "rad_run", "rad", 1.0)
+    b = _in_unit(tmp_path, "deg_run", unit, scale)
+    c = compare([a, b])
+    assert np.max(np.abs(c.differences["x.y"][0])) < 1e-12
+    assert c.table[1]["max |diff x.y|"] < 1e-12
+    over = c.figure.axes[0]
+    assert over.get_ylabel() == "$x$ [rad]"
+    if unit != "rad s$^{-1}$ s":
+        assert any(f"({unit} → rad)" in t.get_text() for t in over.get_legend().get_texts())
+    # the overlay shows the converted values: both runs' lines coincide
+    lines = over.get_lines()
+    np.testing.assert_allclose(lines[2].get_ydata(), lines[0].get_ydata(), atol=1e-12)
+
+
+def test_units_that_cannot_be_converted_refuse_the_difference(tmp_path, capsys):
+    a = _in_unit(tmp_path, "angle", "rad", 1.0)
+    b = _in_unit(tmp_path, "torque", "N m", 1.0)
+    with pytest.raises(OutputError, match=r"^signal x.y is in N m in torque but in rad in "
+                                          r"angle; fwdstep cannot convert N m into rad"):
+        compare([a, b])
+    code = main(["compare", a, b, "-o", str(tmp_path / "cmp")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "cannot convert N m into rad" in err

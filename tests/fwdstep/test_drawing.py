@@ -292,3 +292,28 @@ def test_the_fallback_layout_keeps_boxes_apart_and_collapses_subsystems(tmp_path
     sizes = [t.get_fontsize() for t in fig.axes[0].texts if t.get_text()]
     assert min(sizes) >= 4.5 and fig.get_size_inches()[0] < 40
     assert all(_box_size(b)[0] > 0.3 for b in pic.boxes.values())
+
+
+def test_node_ids_are_one_per_block_and_frame(tmp_path):
+    """A subsystem's block 'a/b' and a top-level block 'a_b' were one graphviz node (4 blocks
+    reported, 3 drawn, their wires merged): the dot source must hold one node per block."""
+    import re
+    (tmp_path / "sub.yaml").write_text(
+        "blocks:\n  b: {type: Gain, gain: 2.0}\n  c: {type: Gain, gain: 3.0}\n"
+        "connections:\n  - b.y -> c.u\n"
+        "ports:\n  inputs: {u: b.u}\n  outputs: {y: c.y}\n")
+    (tmp_path / "top.yaml").write_text(
+        "blocks:\n  src: {type: Constant, value: 1.0}\n  a: {type: subsystem, file: sub.yaml}\n"
+        "  a_b: {type: Gain, gain: 5.0}\n"
+        "connections:\n  - src.y -> a.u\n  - a.y -> a_b.u\n"
+        "simulation: {t_final: 1, step: 0.1}\n")
+    d = fwdstep.load_diagram(str(tmp_path / "top.yaml"))
+    names = {b.name for b in d.blocks}
+    assert names == {"src", "a/b", "a/c", "a_b"}
+    source = diagram_dot(build_picture(d))
+    nodes = re.findall(r"^\s*(n_\w+) \[label=<", source, flags=re.M)
+    clusters = re.findall(r"subgraph (cluster_\w+) \{", source)
+    assert len(nodes) == len(set(nodes)) == len(names)
+    assert len(clusters) == 1
+    edges = re.findall(r"^\s*(n_\w+):o_\w+:e -> (n_\w+):i_\w+:w", source, flags=re.M)
+    assert len(set(edges)) == len(edges) == 3         # src -> a/b -> a/c -> a_b

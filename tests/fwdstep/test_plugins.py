@@ -132,3 +132,37 @@ def test_installed_entry_point_registers_blocks(tmp_path, diagram):
     assert "Logistic" in listing.stdout
     ok = _cli("validate", diagram, env=env)
     assert ok.returncode == 0, ok.stderr
+
+
+def test_a_broken_installed_plugin_is_reported_once_and_not_blamed_on_the_diagram(tmp_path,
+                                                                                   diagram):
+    """An installed entry point whose import fails: one warning naming the plugin, and
+    diagrams that do not use it still validate and run; a diagram that needs one of the
+    missing block types is told which plugin failed (not 'line 3 of your diagram')."""
+    site = tmp_path / "site"
+    pkg = site / "broken_pkg"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("import numpy\nraise ImportError('libfoo.so missing')\n")
+    info = site / "broken_pkg-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-pkg\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[fwdstep.blocks]\nbroken = broken_pkg\n")
+    env = {"PYTHONPATH": os.pathsep.join([str(site), ROOT, os.environ.get("PYTHONPATH", "")])}
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("blocks:\n  c: {type: Constant, value: 1.0}\n"
+                     "simulation: {t_final: 1, step: 0.1}\n")
+    warning = ("fwdstep: warning: the installed block plugin 'broken' (broken_pkg, entry point "
+               "fwdstep.blocks) failed to load and is left out: ImportError: libfoo.so "
+               "missing\n")
+    ok = _cli("validate", str(plain), env=env)
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stderr == warning
+    run = _cli("run", str(plain), "-o", str(tmp_path / "out"), "-q", "--no-plots", env=env)
+    assert run.returncode == 0 and run.stderr == warning
+    needs = _cli("validate", diagram, env=env)
+    assert needs.returncode == 2
+    assert needs.stderr == warning + (
+        f"fwdstep: {diagram}:5: unknown block type 'Logistic'; run 'fwdstep blocks' for the "
+        "list; block types of your own are added with --plugin FILE.py "
+        "(docs/writing-blocks.md); the installed block plugin 'broken' (ImportError: "
+        "libfoo.so missing) failed to load\n")

@@ -39,7 +39,8 @@ def test_bad_simulation_override_names_the_setting(path):
     with pytest.raises(ConfigError) as info:
         load_spec(path, dict([parse_override("simulation.stepp=0.1")]))
     assert str(info.value) == (f"{path}:10: simulation has no setting 'stepp'; settings are: "
-                               "t_final, step, solver, log_every, bound, backend, rtol, atol")
+                               "t_final, step, solver, log_every, bound, backend, rtol, atol, "
+                               "stability_check")
 
 
 def test_override_name_must_be_a_name_or_a_dotted_path():
