@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import functools
 import os
-import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
@@ -153,6 +152,7 @@ def _load(path: str, locked: tuple, gravity: float):
 
 def _mimic_joints(path: str) -> list:
     """[(joint, mimicked joint)] of the URDF's <mimic> elements."""
+    import xml.etree.ElementTree as ElementTree      # only when a URDF is read
     try:
         root = ElementTree.parse(path).getroot()
     except (ElementTree.ParseError, OSError):
