@@ -31,6 +31,7 @@ _PUBLIC = {
     "linearize_along": "fwdstep.analysis.linearize",
     "LinearModel": "fwdstep.analysis.linearize",
     "animate": "fwdstep.views.animate",
+    "sensitivities": "fwdstep.analysis.sensitivity",
 }
 _ERRORS = ("FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
            "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError",

@@ -34,6 +34,9 @@ class Result:
         self.batch = diagram.batch if diagram is not None else 1
         self.diverged_at = diverged_at
         self.reasons = dict(reasons or {})    # batch: variant -> why it diverged (one line)
+        #: forward sensitivities (``fwdstep.sensitivities``): {"signals": name -> (rows,
+        #: size, P), "parameters": [(text, first column, end column, shape)]}, else None
+        self.sensitivity_data = None
 
     @property
     def names(self) -> list:
@@ -62,6 +65,54 @@ class Result:
 
     def variant(self, b: int) -> dict:
         return {k: v[:, b] for k, v in self._signals.items()}
+
+    # ------------------------------------------------------------------ sensitivities
+    @property
+    def sensitivity_parameters(self) -> list:
+        """The parameters differentiated (``fwdstep.sensitivities``), as asked."""
+        return [p[0] for p in (self.sensitivity_data or {}).get("parameters", [])]
+
+    def _parameter(self, param: str) -> tuple:
+        if self.sensitivity_data is None:
+            raise KeyError("this result has no sensitivities: run fwdstep.sensitivities(d, "
+                           "[parameters]) to get them")
+        for p in self.sensitivity_data["parameters"]:
+            if p[0] == param:
+                return p
+        raise KeyError(f"no sensitivity with respect to '{param}'; parameters: "
+                       f"{', '.join(self.sensitivity_parameters)}")
+
+    def sensitivity_matrix(self, signal: str) -> np.ndarray:
+        """d signal / d (all parameters): (T, size of the signal, P columns)."""
+        if self.sensitivity_data is None:
+            self._parameter("")
+        key = self._key(signal)
+        got = self.sensitivity_data["signals"].get(key)
+        if got is None:
+            raise KeyError(f"signal '{signal}' has no sensitivity (it is not logged)")
+        return got
+
+    def sensitivity(self, signal: str, param: str) -> np.ndarray:
+        """d signal / d param along the run: shape of ``self[signal]`` followed by the
+        parameter's shape (a scalar parameter: exactly ``self[signal].shape``)."""
+        text, a, b, shape = self._parameter(param)
+        S = self.sensitivity_matrix(signal)[:, :, a:b]
+        sig_shape = tuple(self.diagram.signal_shapes[self.diagram.signal_index[
+            self._key(signal)]]) if self.diagram is not None else (S.shape[1],)
+        return S.reshape((S.shape[0],) + sig_shape + tuple(shape))
+
+    def split_parameters(self, g: np.ndarray) -> dict:
+        """A gradient over all P columns -> {parameter: array of its shape}."""
+        return {text: np.asarray(g[..., a:b]).reshape(np.shape(g)[:-1] + tuple(shape))
+                for text, a, b, shape in self.sensitivity_data["parameters"]}
+
+    def metric_gradient(self, metric: str, param: str | None = None):
+        """The gradient of a metric (``rms_error``, ... or ``FUNCTION(SIGNAL)``: see
+        ``fwdstep.results.objectives``) with respect to every differentiated parameter
+        ({param: array of its shape}), or to ``param`` alone."""
+        from fwdstep.results.objectives import objective
+        _, grads = objective(self, metric, gradient=True)
+        return grads if param is None else grads[self._parameter(param)[0]]
 
     # ------------------------------------------------------------------ metrics
     def metrics(self) -> dict | list:

@@ -53,6 +53,9 @@ class DiagramSpec:
     signal_info: dict = field(default_factory=dict)   # "sub/blk.port" -> {label, unit, components}
     signal_lines: dict = field(default_factory=dict)  # "sub/blk.port" -> (file, line, as written)
     sampled: dict = field(default_factory=dict)       # "sub/inner" -> {period, offset} (s)
+    #: the ``--set`` overrides it was loaded with (a parameter's derivative reloads the file
+    #: with these plus the perturbed value: fwdstep.analysis.sensitivity)
+    overrides: dict = field(default_factory=dict)
 
 
 def kind_of(value) -> str:

@@ -802,6 +802,7 @@ def load_spec(path: str, overrides: dict | None = None,
         first = errors[0]
         first.more = errors[1:]
         raise first
+    spec.overrides = dict(overrides or {})
     return spec
 
 
