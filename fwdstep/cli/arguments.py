@@ -129,6 +129,57 @@ def build_parser() -> argparse.ArgumentParser:
     lin.add_argument("-o", "--outdir", default=None,
                      help="output directory (default: out/<diagram name>/linear)")
     lin.add_argument("--force", action="store_true", help="overwrite existing results")
+    tu = sub.add_parser("tune", help="gradient-based tuning of parameters (forward "
+                                     "sensitivities): bounds, constraints from metrics, "
+                                     "multi-start")
+    tu.add_argument("diagram", help=_DIAGRAM_HELP)
+    tu.add_argument("--vary", action="append", default=[], required=True,
+                    metavar="NAME=LOW:HIGH", help="a parameter to tune and its bounds: "
+                    "alpha=1:10, 'K[0,0]=10:200', Ks.gain=1:5 (repeatable)")
+    tu.add_argument("--minimize", required=True, metavar="OBJECTIVE",
+                    help="a metric (rms_error, final_error_norm, ...) or FUNCTION(SIGNAL): "
+                         "rms, mean_square, ise, max_abs, max_norm, final_norm, final_abs")
+    tu.add_argument("--subject-to", action="append", default=[], metavar="CONSTRAINT",
+                    help="'OBJECTIVE <= NUMBER' or '>=', e.g. \"max_abs(tau.y) <= 87\" "
+                         "(repeatable)")
+    tu.add_argument("--screen", type=int, default=16, metavar="N",
+                    help="points of the design screened before the local searches (16)")
+    tu.add_argument("--starts", type=int, default=3, metavar="N",
+                    help="local searches, from the best screened points (3)")
+    tu.add_argument("--design", default="sobol", choices=("sobol", "lhs", "random"),
+                    help="screening design (sobol)")
+    tu.add_argument("--seed", type=int, default=0)
+    tu.add_argument("--max-iterations", type=int, default=30, metavar="N",
+                    help="iterations of each local search (30)")
+    tu.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
+    tu.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                    help=_PLUGIN_HELP)
+    tu.add_argument("-o", "--outdir", default=None,
+                    help="output directory (default: out/<diagram name>/tune)")
+    tu.add_argument("--force", action="store_true", help="overwrite existing results")
+    tu.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    ident = sub.add_parser("identify", help="least-squares estimate of a robot's parameters "
+                                            "from a saved run (filtered regressor, no qddot)")
+    ident.add_argument("run", help="directory of a saved run (fwdstep run ... -o RUN)")
+    ident.add_argument("--regressor", required=True, metavar="BLOCK",
+                       help="the regressor block of the run's diagram (Y theta = H zetad + "
+                            "C zeta + g)")
+    ident.add_argument("--q", default=None, metavar="SIGNAL",
+                       help="logged joint positions (default: what feeds the regressor's q)")
+    ident.add_argument("--qdot", default=None, metavar="SIGNAL",
+                       help="logged joint velocities (default: the regressor's qdot input)")
+    ident.add_argument("--tau", default=None, metavar="SIGNAL",
+                       help="logged torques (default: the input tau of the block producing q)")
+    ident.add_argument("--bandwidth", type=float, default=None, metavar="LAMBDA",
+                       help="filter pole lambda/(p + lambda) in rad/s (default: 20 "
+                            "log-sample rate... see docs/design.md)")
+    ident.add_argument("--truth", default=None, metavar="SIGNAL",
+                       help="a logged signal holding the true parameters, for comparison")
+    ident.add_argument("--confidence", type=float, default=0.95,
+                       help="confidence level of the intervals (0.95)")
+    ident.add_argument("-o", "--outdir", default=None,
+                       help="output directory (default: RUN/identify)")
+    ident.add_argument("--force", action="store_true", help="overwrite existing results")
     return p
 
 
@@ -316,6 +367,12 @@ def _command(argv=None) -> int:
             from fwdstep.cli.verbs import cmd_linearize
             return cmd_linearize(args.diagram, args.input, args.output, args.at, args.open,
                                  args.along, args.set, args.outdir, args.force)
+        if args.command == "tune":
+            from fwdstep.cli.verbs import cmd_tune
+            return cmd_tune(args)
+        if args.command == "identify":
+            from fwdstep.cli.verbs import cmd_identify
+            return cmd_identify(args)
     except KeyboardInterrupt as exc:
         reason = getattr(exc, "reason", "interrupted by the user")
         print(f"fwdstep: {reason}", file=sys.stderr)

@@ -289,4 +289,41 @@ def cmd_animate(run_dirs: list, output: str | None = None, fps: float = DISPLAY_
               "fwdstep[robots]", file=sys.stderr)
         return 2
     print(f"wrote {output} ({len(page.encode()) / 1e6:.1f} MB)")
+
+
+# ---------------------------------------------------------------------------- tune
+def cmd_tune(args) -> int:
+    """``fwdstep tune``; exit 0, or 2 with one line on a wrong diagram/option."""
+    from fwdstep.sweeps.tune import FILES as TUNE_FILES, parse_vary, tune
+    path = args.diagram
+    outdir = args.outdir or os.path.join(default_outdir(path), "tune")
+    try:
+        vary = parse_vary(args.vary)
+        overrides = _overrides(args.set)
+        out = OutputDir(outdir, args.force, expected=list(TUNE_FILES))
+        out.__enter__()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    try:
+        result = tune(path, vary, args.minimize, args.subject_to, overrides=overrides,
+                      screen=args.screen, starts=args.starts, design=args.design,
+                      seed=args.seed, max_iterations=args.max_iterations, outdir=out.dir,
+                      progress=None if args.quiet else (lambda line: print(printable(line),
+                                                                           flush=True)))
+        written = out.commit()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    finally:
+        out.__exit__(None, None, None)
+    before = ", ".join(f"{k}={v:.6g}" for k, v in result.initial.items())
+    after = ", ".join(f"{k}={v:.6g}" for k, v in result.best.items())
+    print(f"before: {before}: {args.minimize} = {result.initial_cost:.6g}")
+    print(f"after:  {after}: {args.minimize} = {result.best_cost:.6g} "
+          f"({result.runs['total']} runs: {result.runs['plain']} plain, "
+          f"{result.runs['with_sensitivities']} with sensitivities)")
+    if result.message:
+        print(f"note: {result.message}")
+    print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
     return 0
