@@ -161,6 +161,7 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     base_signature = structure_signature(d.blocks)
     dp: dict = {}
     dx0 = np.zeros((d.n_states, P))
+    cache: dict = {}                  # each file parsed once for all the moved loads
 
     def start_state(dd):
         ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
@@ -175,7 +176,7 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
                 overrides = dict(d.spec.overrides)
                 overrides[par.name] = _moved_value(par, element, off * h)
                 try:
-                    dd = compile_spec(load_spec(d.spec.file, overrides))
+                    dd = compile_spec(load_spec(d.spec.file, overrides, cache))
                 except DiagramError as exc:
                     raise ConfigError(f"sensitivity parameter '{par.text}' cannot be moved by "
                                       f"{off * h:.3g}: {exc}", file=d.file) from None

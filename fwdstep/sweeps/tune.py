@@ -438,7 +438,7 @@ def _replace_parameter(text: str, name: str, value) -> tuple:
             if m and lead == indent:
                 old = m.group("old").strip()
                 lines[i] = (f"{m.group(1)}{name}: {_yaml_value(value)}"
-                            f"   # tuned (was: {old})")
+                            f"   # tuned (was: {old}){m.group('comment') or ''}")
                 return "\n".join(lines), True
     return text, False
 

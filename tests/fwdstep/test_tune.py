@@ -1,0 +1,99 @@
+"""Gain tuning (issue 28): against an independent optimum on a dense grid.
+
+The problem: a PI controller (Kp s + Ki)/s on the plant 1/(s+1)^3, unit step reference,
+minimise the integral of e^2.  The reference cost is exact and independent of fwdstep: the
+closed loop is linear, so ISE = C X C^T with X from the Lyapunov equation (scipy)."""
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fwdstep
+from fwdstep.sweeps.tune import tune
+
+PI = """
+parameters:
+  Kp: 0.5     # proportional gain
+  Ki: 0.2     # integral gain
+blocks:
+  r: {type: Constant, value: 1.0}
+  e: {type: Sum, signs: "+-"}
+  pi: {type: TransferFunction, num: [Kp, Ki], den: [1, 0]}
+  plant: {type: TransferFunction, num: [1], den: [1, 3, 3, 1]}
+connections: [r.y -> e.u1, plant.y -> e.u2, e.y -> pi.u, pi.y -> plant.u]
+simulation: {t_final: 30, step: 0.1, solver: rk4, log_every: 1}
+log: [e.y, pi.y]
+metrics: {error: e.y}
+"""
+BOUNDS = {"Kp": (0.05, 4.0), "Ki": (0.02, 1.5)}
+GRID = 41          # a 41 x 41 grid: 1681 runs
+
+
+def _exact_ise(kp, ki):
+    from scipy import linalg, signal
+    dl = np.polymul([1, 0], [1, 3, 3, 1])
+    den = np.polyadd(dl, [kp, ki])
+    A, B, C, _ = signal.tf2ss(dl[:-1], den)       # E(s) = den_L / (s (den_L + num_L))
+    if np.max(np.linalg.eigvals(A).real) >= 0:
+        return np.inf
+    X = linalg.solve_continuous_lyapunov(A, -B @ B.T)
+    return float((C @ X @ C.T).item())
+
+
+@pytest.fixture
+def pi_diagram(tmp_path):
+    path = tmp_path / "pi.yaml"
+    path.write_text(PI)
+    return str(path)
+
+
+def test_tuning_beats_a_dense_grid_with_a_tenth_of_its_runs(pi_diagram, tmp_path):
+    kp = np.linspace(*BOUNDS["Kp"], GRID)
+    ki = np.linspace(*BOUNDS["Ki"], GRID)
+    grid_best = min(_exact_ise(a, b) for a in kp for b in ki)
+    r = tune(pi_diagram, BOUNDS, "ise(e.y)", screen=8, starts=2, outdir=str(tmp_path / "t"))
+    assert r.runs["total"] <= GRID * GRID / 10
+    # the tuned point's exact cost, and fwdstep's own number for it
+    assert _exact_ise(r.best["Kp"], r.best["Ki"]) <= 1.01 * grid_best
+    assert r.best_cost <= 1.01 * grid_best
+    assert r.initial_cost > 2 * r.best_cost
+    rows = list(csv.DictReader(open(tmp_path / "t" / "history.csv")))
+    assert len(rows) == r.runs["total"]
+    summary = json.load(open(tmp_path / "t" / "tune.json"))
+    assert summary["best"]["values"] == r.best
+    tuned = fwdstep.load_diagram(str(tmp_path / "t" / "best.yaml"))
+    assert tuned.spec.parameters["Kp"] == pytest.approx(r.best["Kp"], rel=1e-12)
+    text = open(tmp_path / "t" / "best.yaml").read()
+    line = next(x for x in text.splitlines() if x.startswith("  Kp:"))
+    assert "tuned (was: 0.5)" in line and line.endswith("# proportional gain")
+
+
+def test_a_torque_like_limit_is_respected(pi_diagram):
+    r = tune(pi_diagram, BOUNDS, "ise(e.y)", ["max_abs(pi.y) <= 2"], screen=8, starts=1)
+    run = fwdstep.simulate(fwdstep.load_diagram(pi_diagram, r.best))
+    assert np.abs(run["pi.y"]).max() <= 2 + 1e-6
+    assert r.best_constraints[0] == pytest.approx(2.0, abs=1e-3)     # the limit is active
+    assert r.best_cost < 0.6 * r.initial_cost
+
+
+def test_cli_tune_writes_its_files_and_refuses_bad_options(pi_diagram, tmp_path):
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(os.environ, PYTHONPATH=root, MPLBACKEND="Agg")
+    out = tmp_path / "cli"
+    cmd = [sys.executable, os.path.join(root, "cli.py"), "tune", pi_diagram,
+           "--vary", "Kp=0.05:4", "--minimize", "ise(e.y)", "--screen", "2", "--starts", "1",
+           "--max-iterations", "2", "-q", "-o", str(out)]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "after:  Kp=" in done.stdout
+    for name in ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png"):
+        assert (out / name).is_file()
+    bad = cmd[:4] + ["--vary", "Kq=0:1", "--minimize", "ise(e.y)", "-o", str(tmp_path / "b")]
+    done = subprocess.run(bad, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2
+    assert "the diagram has no parameter 'Kq'" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
