@@ -32,6 +32,8 @@ _PUBLIC = {
     "LinearModel": "fwdstep.analysis.linearize",
     "animate": "fwdstep.views.animate",
     "sensitivities": "fwdstep.analysis.sensitivity",
+    "tune": "fwdstep.sweeps.tune",
+    "identify_run": "fwdstep.analysis.identify",
 }
 _ERRORS = ("FwdstepError", "DiagramError", "YamlError", "ExpressionError", "ParameterError",
            "UnknownBlockTypeError", "WiringError", "ShapeError", "AlgebraicLoopError",

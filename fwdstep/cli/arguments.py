@@ -171,8 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--tau", default=None, metavar="SIGNAL",
                        help="logged torques (default: the input tau of the block producing q)")
     ident.add_argument("--bandwidth", type=float, default=None, metavar="LAMBDA",
-                       help="filter pole lambda/(p + lambda) in rad/s (default: 20 "
-                            "log-sample rate... see docs/design.md)")
+                       help="filter lambda/(p + lambda), lambda in rad/s (default: "
+                            "min(20, 0.05 / log interval))")
     ident.add_argument("--truth", default=None, metavar="SIGNAL",
                        help="a logged signal holding the true parameters, for comparison")
     ident.add_argument("--confidence", type=float, default=0.95,

@@ -327,3 +327,40 @@ def cmd_tune(args) -> int:
         print(f"note: {result.message}")
     print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
     return 0
+
+
+# ---------------------------------------------------------------------------- identify
+def cmd_identify(args) -> int:
+    """``fwdstep identify RUN --regressor Y``: identify.json (estimate, standard errors,
+    intervals, rank, the signals used); exit 0, or 2 with one line on bad input."""
+    import json
+    from fwdstep.analysis.identify import identify_run
+    outdir = args.outdir or os.path.join(args.run, "identify")
+    try:
+        ident, names, _ = identify_run(args.run, args.regressor, args.q, args.qdot, args.tau,
+                                       args.bandwidth, args.confidence, args.truth)
+        out = OutputDir(outdir, args.force, expected=["identify.json"])
+        out.__enter__()
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    try:
+        data = ident.to_dict()
+        data["signals"] = names
+        with open(os.path.join(out.dir, "identify.json"), "w") as fh:
+            json.dump(data, fh, indent=1)
+        written = out.commit()
+    finally:
+        out.__exit__(None, None, None)
+    print(f"identified {len(ident.theta)} parameters from {ident.rows} rows "
+          f"(q={names['q']}, qdot={names['qdot']}, tau={names['tau']}, filter "
+          f"lambda = {ident.bandwidth:g} rad/s), rank {ident.rank}:")
+    for i, (v, lo, hi) in enumerate(zip(ident.theta, ident.lower, ident.upper)):
+        extra = "" if ident.truth is None else f"   (truth {ident.truth[i]:.8g})"
+        print(f"  theta[{i}] = {v:.8g}   {100 * ident.confidence:g}% interval "
+              f"[{lo:.8g}, {hi:.8g}]{extra}")
+    if len(ident.unidentified):
+        print(f"note: {len(ident.unidentified)} parameter direction(s) not excited by the "
+              "run (see identify.json, 'unidentified')")
+    print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
+    return 0

@@ -1,0 +1,256 @@
+"""Parameter identification: least-squares estimate of a robot's parameters from a logged
+run (q, qdot, tau), with filtered regressors so that qddot is never needed.
+
+The robot obeys H(q) qddot + C(q, qdot) qdot + g(q) = tau, linear in the parameters:
+H zetad + C zeta + g = Y(q, qdot, zeta, zetad) theta (the diagram's regressor block, which
+states exactly this).  Written through the momentum H qdot,
+
+    d/dt (M(q, qdot) theta) + N(q, qdot) theta = tau,
+    M(q, v) = Y(q, 0, 0, v) - Y(q, 0, 0, 0)                 (H(q) v = M(q, v) theta)
+    N(q, qdot) = Y(q, qdot, qdot, 0) - sum_k dM(q, qdot)/dq_k qdot_k
+                                                             (C qdot + g - Hdot qdot)
+
+so no acceleration appears.  Both sides go through the stable filter f(p) = lambda /
+(p + lambda) (zero initial state); since f p w = lambda (w - f w) - lambda e^{-lambda t}
+w(0) exactly,
+
+    Phi theta = tau_f,   Phi = lambda (M - M_f - e^{-lambda t} M(t_0)) + N_f,
+
+one row per joint and logged time.  dM/dq_k is the exact forward-mode derivative of the
+regressor block's traced kernel (``fwdstep.analysis.jacobian.BlockJacobian``, the
+sensitivities' mechanism).  The filter runs on the logged samples, each step exact for the
+cubic through four neighbouring samples (``exponential_filter``: O(h^4), so log densely
+and do not log across a jump of tau).  ``theta = lstsq(Phi, tau_f)``; its columns' singular values tell which
+parameters the run excites (``rank``: a rank-deficient Phi is reported, the minimum-norm
+solution returned, and the directions not identified named).
+
+Confidence intervals: the model is white noise of variance sigma^2 on the logged torques.
+The filtered residuals are then F e (F the filter as a matrix over the samples), correlated
+over about 1/lambda, so the plain OLS covariance sigma^2 (Phi^T Phi)^-1 would be far too
+narrow.  The covariance is the exact sandwich sigma^2 (Phi^T Phi)^-1 Psi^T Psi
+(Phi^T Phi)^-1 with Psi = F^T Phi (the adjoint filter, run backwards in time), and sigma^2
+the residual sum of squares over its expectation's factor tr(F F^T) - tr((Phi^T Phi)^-1
+Psi^T Psi); intervals theta +- z sigma_theta (normal quantile of the confidence level).
+Noise on q and qdot enters the regressor nonlinearly (errors in variables): not covered,
+it biases the estimate.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fwdstep.core.errors import ConfigError
+
+@dataclass
+class Identification:
+    """``theta`` (p,), ``std`` (p,), ``lower``/``upper`` (p,) at ``confidence``,
+    ``residual_rms``, ``rank``, ``singular_values``, ``unidentified`` (unit directions of
+    parameter space the run does not excite), ``bandwidth`` (lambda, rad/s), ``rows``."""
+    theta: np.ndarray
+    std: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    confidence: float
+    residual_rms: float
+    rank: int
+    singular_values: np.ndarray
+    unidentified: np.ndarray
+    bandwidth: float
+    rows: int
+    truth: np.ndarray | None = None
+    names: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        out = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+               for k, v in self.__dict__.items()}
+        if self.truth is not None:
+            out["inside_interval"] = ((self.truth >= self.lower) &
+                                      (self.truth <= self.upper)).tolist()
+            out["error"] = (self.theta - self.truth).tolist()
+        return out
+
+
+def _filter_plan(t: np.ndarray, lam: float):
+    """(a, [(stencil start per step, weights)]) of ``exponential_filter``."""
+    T = len(t)
+    h = (t[-1] - t[0]) / (T - 1)
+    if np.max(np.abs(np.diff(t) - h)) > 1e-6 * h:
+        raise ConfigError("identification needs uniformly spaced log times (a fixed-step "
+                          "run)")
+    nodes, weights = np.polynomial.legendre.leggauss(8)
+    s = 0.5 * h * (nodes + 1.0)
+    kernel = 0.5 * h * weights * lam * np.exp(-lam * (h - s))
+
+    def stencil(offsets):
+        pts = np.asarray(offsets, dtype=float) * h
+        c = []
+        for j, pj in enumerate(pts):
+            others = np.delete(pts, j)
+            basis = np.prod([(s - o) / (pj - o) for o in others], axis=0)
+            c.append(float(np.sum(kernel * basis)))
+        return np.array(c)
+
+    k = np.arange(T - 1)
+    if T < 4:                          # too few samples for a cubic: linear between them
+        return math.exp(-lam * h), k, stencil([0, 1]) * np.ones((T - 1, 1))
+    lo = np.clip(k - 1, 0, T - 4)
+    c = np.empty((T - 1, 4))
+    c[:] = stencil([-1, 0, 1, 2])
+    c[0] = stencil([0, 1, 2, 3])
+    c[-1] = stencil([-2, -1, 0, 1])
+    return math.exp(-lam * h), lo, c
+
+
+def exponential_filter(t: np.ndarray, w: np.ndarray, lam: float,
+                       adjoint: bool = False) -> np.ndarray:
+    """z' = lam (w - z), z(t_0) = 0, over the samples (axis 0).  Each step is the exact
+    solution for w equal to the cubic through four neighbouring samples (k-1 .. k+2,
+    shifted at the ends): z_{k+1} = e^{-lam h} z_k + sum_j c_j w_{k+j}, the weights
+    c_j = int_0^h lam e^{-lam (h - s)} l_j(s) ds of the Lagrange basis l_j by 8-point
+    Gauss-Legendre (exact to round-off for lam h <= 1).  Local error O(h^5), global O(h^4).
+    ``adjoint``: the transposed linear map (for the covariance of filtered noise)."""
+    from scipy.signal import lfilter
+    t = np.asarray(t, dtype=float)
+    w = np.asarray(w, dtype=float)
+    T = len(t)
+    z = np.zeros_like(w)
+    if T < 2:
+        return z
+    a, lo, c = _filter_plan(t, lam)
+    n_c = c.shape[1]
+    shape = (-1,) + (1,) * (w.ndim - 1)
+    if not adjoint:
+        u = sum(c[:, j].reshape(shape) * w[lo + j] for j in range(n_c))
+        z[1:] = lfilter([1.0], [1.0, -a], u, axis=0)        # z_{k+1} = a z_k + u_k
+        return z
+    v = lfilter([1.0], [1.0, -a], w[1:][::-1], axis=0)[::-1]   # R^T: anti-causal
+    for j in range(n_c):
+        np.add.at(z, lo + j, c[:, j].reshape(shape) * v)
+    return z
+
+
+def regressor_terms(block, q: np.ndarray, qdot: np.ndarray) -> tuple:
+    """M(q, qdot) and N(q, qdot) (module docstring), each (T, n, p), from the regressor
+    block (inputs q, qdot, zeta, zetad; output Y (n, p))."""
+    from fwdstep.analysis.jacobian import BlockJacobian
+    names = list(block.inputs)
+    if names[:4] != ["q", "qdot", "zeta", "zetad"] or len(block.outputs) != 1:
+        raise ConfigError(f"block '{block.name}' ({block.type_name}) is not a regressor "
+                          "Y(q, qdot, zeta, zetad) with one output")
+    T, n = q.shape
+    zero = np.zeros_like(q)
+    x = np.zeros((T, block.n_states))
+
+    def Y(a, b, c, e):
+        return np.broadcast_to(block.output(0.0, x, (a, b, c, e))[0],
+                               (T,) + tuple(block.outputs[next(iter(block.outputs))].shape))
+
+    M = Y(q, zero, zero, qdot) - Y(q, zero, zero, zero)
+    jac = BlockJacobian(block)
+    out = f"y.{next(iter(block.outputs))}"
+    dM = (jac.at(0.0, x, (q, zero, zero, qdot)).part(out, "u.q")
+          - jac.at(0.0, x, (q, zero, zero, zero)).part(out, "u.q"))       # (T, n p, n)
+    Hdot = np.einsum("trk,tk->tr", dM, qdot).reshape(M.shape)
+    N = Y(q, qdot, qdot, zero) - Hdot
+    return M, N, jac.method
+
+
+def estimate(t, q, qdot, tau, block, bandwidth: float | None = None,
+             confidence: float = 0.95, truth=None) -> Identification:
+    """The least-squares estimate from logged arrays (module docstring)."""
+    from scipy.stats import norm
+    t = np.asarray(t, dtype=float)
+    q, qdot, tau = (np.asarray(a, dtype=float).reshape(len(t), -1) for a in (q, qdot, tau))
+    if len(t) < 3:
+        raise ConfigError("identification needs at least 3 logged samples")
+    h = float(np.median(np.diff(t)))
+    lam = float(bandwidth) if bandwidth else min(20.0, 0.05 / h)
+    M, N, _ = regressor_terms(block, q, qdot)
+    T, n, p = M.shape
+    decay = np.exp(-lam * (t - t[0]))[:, None, None]
+    Phi = lam * (M - exponential_filter(t, M, lam) - decay * M[0]) + exponential_filter(t, N,
+                                                                                        lam)
+    y = exponential_filter(t, tau, lam)
+    A = Phi.reshape(T * n, p)
+    b = y.reshape(T * n)
+    theta, _, rank, sv = np.linalg.lstsq(A, b, rcond=None)
+    r = (b - A @ theta).reshape(T, n)
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    tol = s.max() * max(A.shape) * np.finfo(float).eps if s.size else 0.0
+    unidentified = Vt[s <= tol] if s.size else np.zeros((0, p))
+    # white torque noise e (variance sigma^2): the filtered noise is F e, so
+    # Cov(theta) = sigma^2 (A^T A)^-1 (F^T A)^T (F^T A) (A^T A)^-1, and
+    # E |r|^2 = sigma^2 (tr(F F^T) - tr((A^T A)^-1 (F^T A)^T (F^T A)))
+    Psi = exponential_filter(t, Phi, lam, adjoint=True).reshape(T * n, p)
+    inv = np.linalg.pinv(A.T @ A)
+    middle = Psi.T @ Psi
+    impulse = np.zeros(T)
+    impulse[min(3, T - 1)] = 1.0
+    g = exponential_filter(t, impulse, lam)[min(3, T - 1):]
+    trace_ffT = n * float(np.sum(np.cumsum(g * g)[:T]))
+    trace_ffT += n * float(np.sum(g * g)) * max(0, T - len(g))
+    dof = max(trace_ffT - float(np.trace(inv @ middle)), 1e-300)
+    sigma2 = float(np.sum(r * r)) / dof
+    cov = sigma2 * inv @ middle @ inv
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    z = float(norm.ppf(0.5 + confidence / 2.0))
+    return Identification(theta=theta, std=std, lower=theta - z * std, upper=theta + z * std,
+                          confidence=confidence, residual_rms=float(np.sqrt(np.mean(r * r))),
+                          rank=int(rank), singular_values=sv, unidentified=unidentified,
+                          bandwidth=lam, rows=int(T * n),
+                          truth=None if truth is None else np.asarray(truth, float).reshape(-1),
+                          names=[f"theta[{i}]" for i in range(p)])
+
+
+def _driver(d, block: str, port: str) -> str | None:
+    for (blk, inp), (src, out) in d.structure.drivers.items():
+        if blk == block and inp == port:
+            return f"{src}.{out}"
+    return None
+
+
+def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
+                 bandwidth=None, confidence: float = 0.95, truth=None) -> tuple:
+    """(``Identification``, the signal names used, the diagram) from a saved run directory
+    (``fwdstep run D -o RUN``): the run's diagram is loaded again with its parameters, the
+    regressor block taken from it, q/qdot default to the signals feeding the regressor's q
+    and qdot inputs, tau to the input 'tau' of the block producing q."""
+    from fwdstep.results.result import load_result
+    from fwdstep.structure.compiler import load_diagram
+    r = load_result(run_dir)
+    path = r.stored.get("diagram")
+    if not path:
+        raise ConfigError(f"{run_dir}: the saved run names no diagram")
+    params = r.stored.get("parameters") or {}
+    try:
+        d = load_diagram(path, {k: v for k, v in params.items() if v is not None})
+    except ConfigError:
+        d = load_diagram(path)
+    blocks = {b.name: b for b in d.blocks}
+    if regressor not in blocks:
+        raise ConfigError(f"--regressor '{regressor}': the run's diagram has no block "
+                          f"'{regressor}'; blocks are: {', '.join(blocks)}", file=d.file)
+    q = q or _driver(d, regressor, "q")
+    qdot = qdot or _driver(d, regressor, "qdot")
+    if tau is None and q is not None:
+        tau = _driver(d, q.rsplit(".", 1)[0], "tau")
+    names = {"q": q, "qdot": qdot, "tau": tau}
+    for what, sig in names.items():
+        if sig is None or sig not in r:
+            raise ConfigError(f"identification needs the logged signal {what} "
+                              f"('{sig}'); the run logged: {', '.join(r.names)}; run it with "
+                              f"--set log=[{q}, {qdot}, {tau}] (and a dense log_every)",
+                              file=d.file)
+    if isinstance(truth, str):
+        if truth not in r:
+            raise ConfigError(f"--truth '{truth}' was not logged", file=d.file)
+        truth = np.asarray(r[truth])[0]
+    ident = estimate(r.t, r[q], r[qdot], r[tau], blocks[regressor], bandwidth, confidence,
+                     truth)
+    return ident, names, d
+
+
+__all__ = ["Identification", "estimate", "identify_run", "regressor_terms",
+           "exponential_filter"]
