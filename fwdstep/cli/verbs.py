@@ -289,6 +289,7 @@ def cmd_animate(run_dirs: list, output: str | None = None, fps: float = DISPLAY_
               "fwdstep[robots]", file=sys.stderr)
         return 2
     print(f"wrote {output} ({len(page.encode()) / 1e6:.1f} MB)")
+    return 0
 
 
 # ---------------------------------------------------------------------------- tune
