@@ -207,9 +207,9 @@ def _same_structure(d, dd, par, base_signature, signature) -> None:
     moved = signature(dd.blocks)
     if moved == base_signature:
         return
-    for a, b in zip(base_signature, moved):
+    for blk, a, b in zip(d.blocks, base_signature, moved):
         if a != b:
-            raise ConfigError(f"sensitivity parameter '{par.text}' changes block '{a.key[0]}' "
+            raise ConfigError(f"sensitivity parameter '{par.text}' changes block '{blk.name}' "
                               "beyond its run-time parameters (a size, a shape, an event time "
                               "or a setting kept outside p): not differentiable", file=d.file)
     raise ConfigError(f"sensitivity parameter '{par.text}' changes the diagram's blocks",
