@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="local searches, from the best screened points (3)")
     tu.add_argument("--design", default="sobol", choices=("sobol", "lhs", "random"),
                     help="screening design (sobol)")
-    tu.add_argument("--seed", type=int, default=0)
+    tu.add_argument("--seed", type=int, default=0, help="seed of the screening design (0)")
     tu.add_argument("--max-iterations", type=int, default=30, metavar="N",
                     help="iterations of each local search (30)")
     tu.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)

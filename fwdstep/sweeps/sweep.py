@@ -221,18 +221,19 @@ class BatchJob:
 def settings_key(spec, memo: dict | None = None) -> tuple:
     """Everything in a diagram spec that may change a variant's numbers besides its blocks:
     every field of the spec (the simulation settings object whole, log, metrics, connections,
-    ...) except the parameters (which reach the numbers only through the blocks) and the
-    blocks themselves (``structure_signature``).  Fields are read, never listed, so settings
+    ...) except the parameters and the ``--set`` overrides the spec was made with (which
+    reach the numbers only through the blocks) and the blocks themselves
+    (``structure_signature``).  Fields are read, never listed, so settings
     added later are included.  ``memo`` (kept by the caller while all the specs are alive)
     reuses the key of fields that are the very same objects as an earlier spec's (variants
     derived from one load share their connections, log, ...)."""
     rest = [(name, getattr(spec, name)) for name in _field_names(type(spec))
-            if name not in ("parameters", "blocks")]
+            if name not in ("parameters", "blocks", "overrides")]
     if memo is not None:
         shared = tuple(id(value) for name, value in rest if name != "simulation")
         if shared not in memo:
             memo[shared] = settings_key(dataclasses.replace(
-                spec, simulation=None, parameters={}, blocks=[]))
+                spec, simulation=None, parameters={}, blocks=[], overrides={}))
         return memo[shared] + settings_key(spec.simulation)
     try:            # equal bytes: equal content (unequal bytes only split a batch further)
         return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)

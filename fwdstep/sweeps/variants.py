@@ -191,7 +191,8 @@ class VariantSpecs:
                 return None
             entries.append(new)
             rebuilt[k] = key
-        return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim), rebuilt
+        return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim,
+                                   overrides={**base.overrides, **values}), rebuilt
 
     def _sim_doc(self, sim_overrides: dict):
         if not sim_overrides:
