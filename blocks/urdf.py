@@ -246,8 +246,8 @@ def _base_reduction(path: str, locked: tuple, gravity: float):
 def _robot_params():
     return {
         "robot": Param("str", "", "example-robot-data model: " + ", ".join(NAMED_ROBOTS)),
-        "urdf": Param("str", "", "URDF file (absolute, or relative to the working directory); "
-                                 "instead of 'robot'"),
+        "urdf": Param("file", "", "URDF file (absolute, or relative to the diagram file that "
+                                  "names it, like a subsystem's file:); instead of 'robot'"),
         "locked_joints": Param("names", None, "joint names fixed at the neutral configuration "
                                               "(default: the named robot's, e.g. the Panda's "
                                               "fingers; [] for none)"),

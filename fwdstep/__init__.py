@@ -12,7 +12,7 @@ verb) pays only for the layers it touches; docs/architecture.md shows the layers
 """
 import importlib
 
-__version__ = "0.1.0"
+from fwdstep.core.version import __version__  # noqa: E402
 
 #: public name -> the module that defines it
 _PUBLIC = {

@@ -32,7 +32,7 @@ def test_run_exits_0_and_writes_results_summary_and_figures(theorem1_run):
     assert code == 0
     assert sorted(os.listdir(outdir)) == sorted(
         ["result.npz", "summary.json", "tracking_error.png", "torque.png",
-         "parameter_estimates.png", "manifest.json"])
+         "parameter_estimates.png", "manifest.json", "diagram"])
     for name in ("tracking_error.png", "torque.png", "parameter_estimates.png"):
         with open(os.path.join(outdir, name), "rb") as fh:
             assert fh.read(8) == PNG_MAGIC
@@ -90,7 +90,8 @@ def test_run_set_overrides_parameters(tmp_path, capsys):
     assert summary["simulation"]["t_final"] == 0.5
     # ell = 3: the reference dynamics' state grows, q_d becomes a parabola (3 coefficients)
     assert np.shape(summary["parameters"]["qd_coefficients"]) == (2, 3)
-    assert sorted(os.listdir(outdir)) == ["manifest.json", "result.npz", "summary.json"]
+    assert sorted(os.listdir(outdir)) == ["diagram", "manifest.json", "result.npz",
+                                          "summary.json"]
 
 
 def test_run_with_an_unknown_parameter_exits_2_with_one_line(tmp_path, capsys):

@@ -50,6 +50,19 @@ def build_parser() -> argparse.ArgumentParser:
                      help="record into memory-mapped files beside OUTDIR instead of memory "
                           "(limited by free disk space)")
 
+    rr = sub.add_parser("rerun", help="run again exactly what made a run directory (its copy "
+                                      "of the diagram, --set values, backend, plugins)")
+    rr.add_argument("run_dir", metavar="RUN_DIR", help="a directory written by fwdstep run")
+    rr.add_argument("-o", "--outdir", default=None,
+                    help="output directory (default: RUN_DIR_rerun)")
+    rr.add_argument("--force", action="store_true", help="overwrite existing results")
+    rr.add_argument("--no-plots", action="store_true", help="skip the figures")
+    rr.add_argument("-q", "--quiet", action="store_true", help="no progress or summary line")
+    rr.add_argument("--report", action="store_true", help="also write report.html")
+    rr.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                    help=_PLUGIN_HELP + "; the run's own plugins are loaded (and checked "
+                                        "against their recorded SHA-256) without it")
+
     val = sub.add_parser("validate", help="load and compile a diagram (exit 0 or 2)")
     val.add_argument("diagram", help=_DIAGRAM_HELP)
     val.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
@@ -340,6 +353,7 @@ def _command(argv=None) -> int:
     except SystemExit as exc:       # argparse already printed a one-line usage error
         return 2 if exc.code not in (0, None) else 0
     from fwdstep.cli import commands
+    commands._ARGUMENTS = list(sys.argv[1:] if argv is None else argv)   # for the record
     try:
         if getattr(args, "plugin", None):        # user-chosen block files, before anything
             from fwdstep.structure.library import load_plugins
@@ -353,6 +367,10 @@ def _command(argv=None) -> int:
                                     backend=args.backend,
                                     max_log_memory=args.max_log_memory,
                                     log_to_disk=args.log_to_disk)
+        if args.command == "rerun":
+            return commands.cmd_rerun(args.run_dir, args.outdir, args.force,
+                                      plots=not args.no_plots, quiet=args.quiet,
+                                      report=args.report)
         if args.command == "validate":
             return commands.cmd_validate(args.diagram, args.set)
         if args.command == "blocks":

@@ -38,7 +38,8 @@ def default_outdir(path: str) -> str:
 
 def run_files(d, plots: bool, formats=("png",)) -> list:
     """Names of the files ``fwdstep run`` writes for compiled diagram ``d``."""
-    names = [RESULT_FILE, SUMMARY_FILE]
+    from fwdstep.results.provenance import COPY_DIR
+    names = [RESULT_FILE, SUMMARY_FILE, COPY_DIR]
     if plots:
         from fwdstep.results.plotting import figure_specs
         from fwdstep.results.result import Result
@@ -80,12 +81,16 @@ def _note_defaults(d) -> None:
 def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False,
             plots: bool = True, quiet: bool = False, backend: str | None = None,
             formats=("png",), max_log_memory: str | None = None,
-            log_to_disk: bool = False) -> int:
+            log_to_disk: bool = False, redirects: dict | None = None,
+            record: dict | None = None, overrides: dict | None = None) -> int:
     """``fwdstep run``: the output directory is claimed (locked, checked) and the log's size
     checked (``fwdstep.core.budgets``) before the simulation starts; results are written as one
     transaction (``fwdstep.results.outputs``) after it, partial when it diverged, failed or was
     interrupted (SIGINT/SIGTERM/SIGHUP).  ``log_to_disk`` records into memory-mapped files
-    beside the output directory instead of memory."""
+    beside the output directory instead of memory.  The output directory also gets a copy of
+    the diagram as run and the record of what made the run (``fwdstep.results.provenance``:
+    ``sets`` as typed, the command line, plus ``record``); ``redirects``: read a recorded
+    copy (``fwdstep rerun``)."""
     import shutil
     import tempfile
     from fwdstep.core.budgets import check_log, parse_size
@@ -94,7 +99,8 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
     outdir = outdir or default_outdir(path)
     log_dir = limit = None
     try:
-        d = load_diagram(path, _overrides(sets))
+        d = load_diagram(path, {**(overrides or {}), **_overrides(sets)},
+                         redirects=redirects)
         limit = parse_size(max_log_memory) if max_log_memory else None
         if not log_to_disk:             # before the output directory is claimed
             check_log(d, limit)
@@ -109,7 +115,9 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
         if log_to_disk:
             log_dir = tempfile.mkdtemp(prefix=f".{out.name}.fwdstep-log-", dir=out.parent)
             check_log(d, to_disk=log_dir)   # the CLI's words; simulate checks it again
-        return _run_into(out, d, plots, quiet, backend, formats, log_dir, limit)
+        record = {"command": _command_line(), "sets": list(sets or []), **(record or {}),
+                  "figure_formats": list(formats) if plots else []}
+        return _run_into(out, d, plots, quiet, backend, formats, log_dir, limit, record)
     except (DiagramError, OutputError) as exc:
         _err(str(exc))
         return EXIT_INPUT
@@ -119,8 +127,17 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
             shutil.rmtree(log_dir, ignore_errors=True)
 
 
+#: the arguments of the command being run (``fwdstep.cli.arguments.main`` sets them)
+_ARGUMENTS: list | None = None
+
+
+def _command_line() -> list:
+    """The command as typed: 'fwdstep' and its arguments."""
+    return ["fwdstep"] + list(sys.argv[1:] if _ARGUMENTS is None else _ARGUMENTS)
+
+
 def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
-              max_log_bytes=None) -> int:
+              max_log_bytes=None, record=None) -> int:
     from fwdstep.run.simulate import simulate
     from fwdstep.core import signals
     code = EXIT_OK
@@ -138,7 +155,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
             return code
     try:
         with signals.deferred():                  # a signal now: the results still land
-            written = result.write_files(out.dir)
+            written = result.write_files(out.dir, record)
             if plots and len(result.t) and code != EXIT_BLOCK:
                 code = _figures(result, out.dir, formats, code)
             written = out.commit()
@@ -174,6 +191,41 @@ def _figures(result, folder: str, formats, code: int) -> int:
         _err(f"the figures could not be drawn ({type(exc).__name__}: "
              f"{' '.join(str(exc).split())[:200]}); the run's data are written")
         return code or EXIT_INPUT
+    return code
+
+
+def cmd_rerun(run_dir: str, outdir: str | None = None, force: bool = False,
+              plots: bool = True, quiet: bool = False, report: bool = False) -> int:
+    """``fwdstep rerun RUN_DIR -o NEW``: run again exactly what made RUN_DIR -- the copy of
+    the diagram kept there, the same ``--set`` values, backend and solver settings, the same
+    plugin files (refused in one line when one is missing or has changed) -- into NEW
+    (default RUN_DIR_rerun).  Fixed-step runs give bit-identical result.npz arrays."""
+    from fwdstep.results import provenance
+    try:
+        prov = provenance.read_record(run_dir)
+        plugins = provenance.check_plugins(prov)
+        if plugins:
+            from fwdstep.structure.library import load_plugins
+            load_plugins(plugins)
+        top, overrides, redirects = provenance.load_recorded(run_dir, prov)
+    except (DiagramError, OutputError) as exc:
+        _err(str(exc))
+        return EXIT_INPUT
+    outdir = outdir or os.path.normpath(run_dir) + "_rerun"
+    formats = tuple(prov.get("figure_formats") or ("png",))
+    keep = {"rerun_of": os.path.abspath(run_dir),
+            "diagram_source": prov.get("diagram_source"),
+            "sets": prov.get("sets")}
+    code = cmd_run(top, None, outdir, force, plots=plots and bool(prov.get("figure_formats")),
+                   quiet=quiet, backend=prov.get("backend"), formats=formats,
+                   redirects=redirects, overrides=overrides, record=keep)
+    if report and code != EXIT_INPUT:
+        from fwdstep.views.report import write_report
+        try:
+            print(f"wrote {write_report(outdir)}")
+        except (FwdstepError, OSError) as exc:
+            _err(f"cannot write the report: {exc}")
+            code = code or EXIT_INPUT
     return code
 
 

@@ -97,7 +97,12 @@ def _cmd_sweep(args) -> int:
         print("fwdstep: interrupted", file=sys.stderr)
         return 128 + int(getattr(exc, "signum", signal.SIGINT))
     try:
-        written = result.write(outdir, dataset=getattr(args, "netcdf", False))
+        from fwdstep.cli.commands import _command_line
+        record = {"command": _command_line(), "sets": list(args.set or []),
+                  "grid": list(args.grid or []), "random": list(args.random or []),
+                  "samples": args.samples, "seed": args.seed,
+                  "design": getattr(args, "design", "random")}
+        written = result.write(outdir, dataset=getattr(args, "netcdf", False), record=record)
     except (OSError, OutputError) as exc:
         print(f"fwdstep: cannot write results to {outdir}: {exc}", file=sys.stderr)
         return EXIT_INPUT

@@ -69,7 +69,9 @@ class Param:
       ``float`` (scalar number), ``int`` (whole number), ``bool``, ``str`` (literal text),
       ``array`` (number, list or nested list -> float ndarray), ``choice`` (one of
       ``choices``), ``names`` (a list of literal names, e.g. joints: a tuple of str),
-      ``any`` (passed through after expression evaluation).
+      ``file`` (a file name: the loader makes it absolute, relative to the diagram file
+      that names it, as subsystem ``file:`` is; from ``--set``, relative to the working
+      directory), ``any`` (passed through after expression evaluation).
     Numeric kinds accept expression strings, evaluated against the diagram's parameters.
     """
 
@@ -385,7 +387,7 @@ def coerce(block: str, key: str, decl: Param, value: Any) -> Any:
     kind = decl.kind
     if kind == "any":
         return value
-    if kind == "str":
+    if kind in ("str", "file"):
         if not isinstance(value, str):
             raise bad("a string")
         return value

@@ -76,14 +76,19 @@ def check_regular_file(path: str, what: str = "the diagram") -> None:
 class SearchPath:
     """The roots includes may come from, fixed once per top-level diagram."""
 
-    def __init__(self, top_file: str):
+    def __init__(self, top_file: str, redirects: dict | None = None):
         self.library = shipped_library()
+        #: (including file, name as written) -> the file to read instead: a run's recorded
+        #: copy (``fwdstep.results.provenance``), so a rerun reads exactly what was run
+        self.redirects = {(os.path.normpath(os.path.abspath(by)) if by else by, name): target
+                          for (by, name), target in (redirects or {}).items()}
         self.user = user_path()
         given = [os.path.dirname(os.path.abspath(top_file))]
         given += ([self.library] if self.library else []) + self.user
         self.roots_real = [os.path.realpath(r) for r in given]
         self.roots_text = [os.path.normpath(os.path.abspath(r)) for r in given] + self.roots_real
         self.documents: dict = {}     # realpath -> parsed document, filled by the loader
+        self.read: list = []          # every file the loader read (structure.model.SourceFile)
 
     def allowed(self, path: str) -> bool:
         """``path`` lies inside one of the roots, both as written (no ``..`` out of it) and
@@ -93,6 +98,30 @@ class SearchPath:
             return False
         real = os.path.realpath(norm)
         return any(_inside(real, r) for r in self.roots_real)
+
+    def _redirected(self, name: str, including_file: str | None):
+        if not self.redirects:
+            return None
+        key = os.path.normpath(os.path.abspath(including_file)) if including_file else \
+            including_file
+        return self.redirects.get((key, name))
+
+    def data_file(self, name: str, including_file: str | None) -> str:
+        """The absolute path of a block's data file (``Param("file")``, e.g. a URDF) named
+        ``name`` by ``including_file`` (None: typed on the command line, relative to the
+        working directory).  Relative names are relative to the file that names them, as
+        subsystem files are; data files are not confined (they are read by the block, which
+        says when one is missing)."""
+        target = self._redirected(name, including_file or "")
+        if target is not None:
+            return target
+        if not name:
+            return name
+        expanded = os.path.expanduser(name)
+        if os.path.isabs(expanded) or not including_file:
+            return os.path.normpath(os.path.abspath(expanded))
+        return os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(including_file)),
+                                             expanded))
 
     def candidates(self, name: str, including_file: str) -> list:
         """(label, path) in search order for ``file: name``."""
@@ -110,6 +139,9 @@ class SearchPath:
     def resolve(self, name: str, including_file: str, what: str, line) -> str:
         """The file ``file: name`` of ``including_file`` stands for; ConfigError otherwise.
         Messages name the places looked in, never the content of any file."""
+        target = self._redirected(name, including_file)
+        if target is not None:
+            return target
         if name.startswith("~") or "\\" in name:
             raise ConfigError(f"{what}: file '{name}' must be a path with '/' relative to the "
                               f"diagram, the library (lib/NAME) or {PATH_VARIABLE}",

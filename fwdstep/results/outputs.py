@@ -169,7 +169,7 @@ class OutputDir:
         if foreign_manifest(self.target):
             raise OutputError(_not_ours(os.path.join(self.requested, MANIFEST_FILE),
                                         os.path.join(self.target, MANIFEST_FILE)))
-        ours = owned_files(self.target)
+        ours = owned_entries(self.target)
         existing = [n for n in self.expected if os.path.lexists(os.path.join(self.target, n))]
         for n in existing:
             if n not in ours:
@@ -233,7 +233,10 @@ class OutputDir:
             raise OutputError("commit() outside the with block or twice")
         with deferred():
             names = sorted(os.listdir(self.dir))
-            files = {n: _describe(os.path.join(self.dir, n)) for n in names}
+            files = {}
+            for n in names:                        # a folder (the diagram as run): its files
+                for rel in _files_below(self.dir, n):
+                    files[rel] = _describe(os.path.join(self.dir, rel))
             exists = os.path.isdir(self.target)
             if exists:                             # earlier results stay fwdstep's
                 if foreign_manifest(self.target):
@@ -242,15 +245,16 @@ class OutputDir:
                         _not_ours(os.path.join(self.requested, MANIFEST_FILE),
                                   os.path.join(self.target, MANIFEST_FILE)) +
                         f"; this run's files are kept in {printable(self.dir)}")
-                ours = owned_files(self.target)
+                ours = owned_entries(self.target)
                 for n in names:                    # re-checked: the user may have acted since
                     old = os.path.join(self.target, n)
                     if os.path.lexists(old) and n not in ours:
                         self._keep = True
                         raise OutputError(_not_ours(os.path.join(self.requested, n), old) +
                                           f"; this run's files are kept in {printable(self.dir)}")
-                for n in sorted(ours - set(names) - {MANIFEST_FILE}):
-                    files[n] = _describe(os.path.join(self.target, n))
+                for n in sorted(owned_files(self.target) - {MANIFEST_FILE}):
+                    if n.split("/", 1)[0] not in names:      # not superseded by this run
+                        files[n] = _describe(os.path.join(self.target, n))
             with open(os.path.join(self.dir, MANIFEST_FILE), "w") as fh:
                 json.dump({"written_by": "fwdstep", "files": files}, fh, indent=2)
             os.chmod(self.dir, 0o777 & ~_umask())
@@ -277,7 +281,10 @@ class OutputDir:
         in one by one (each replacing only fwdstep's own file, or nothing), the manifest
         last."""
         for n in names + [MANIFEST_FILE]:
-            os.replace(os.path.join(self.dir, n), os.path.join(self.target, n))
+            new, old = os.path.join(self.dir, n), os.path.join(self.target, n)
+            if os.path.isdir(new) and os.path.isdir(old) and not os.path.islink(old):
+                shutil.rmtree(old)                 # fwdstep's own folder (owned_entries)
+            os.replace(new, old)
         os.rmdir(self.dir)
 
     def _swap(self, new: set) -> None:
@@ -317,9 +324,45 @@ def foreign_manifest(directory: str) -> bool:
         return True
 
 
+def _files_below(root: str, name: str) -> list:
+    """``name`` (an entry of ``root``) if it is a file, else the files inside the folder
+    ``name`` as manifest names ('diagram/lib/plant.yaml'); symbolic links are not followed."""
+    top = os.path.join(root, name)
+    if os.path.islink(top) or not os.path.isdir(top):
+        return [name]
+    out = []
+    for here, dirs, files in os.walk(top):
+        dirs.sort()
+        rel = os.path.relpath(here, root).replace(os.sep, "/")
+        out += [f"{rel}/{f}" for f in sorted(files)]
+    return out
+
+
+def owned_entries(directory: str) -> set:
+    """Top-level entries of ``directory`` that fwdstep wrote: its files (``owned_files``) and
+    its folders -- real folders (no symbolic link) every file of which the manifest lists,
+    so that replacing one never removes a file of the user's."""
+    ours = owned_files(directory)
+    out = {n for n in ours if "/" not in n}
+    for top in {n.split("/", 1)[0] for n in ours if "/" in n}:
+        path = os.path.join(directory, top)
+        if os.path.islink(path) or not os.path.isdir(path):
+            continue
+        inside = []
+        for here, dirs, files in os.walk(path):
+            rel = os.path.relpath(here, directory).replace(os.sep, "/")
+            if any(os.path.islink(os.path.join(here, d)) for d in dirs):
+                inside.append(None)            # a link inside: not ours to remove
+            inside += [f"{rel}/{f}" for f in files]
+        if all(n in ours for n in inside):
+            out.add(top)
+    return out
+
+
 def owned_files(directory: str) -> set:
-    """Entries of ``directory`` that fwdstep wrote: listed in its manifest (and still regular
-    files), or legacy result files when there is no manifest."""
+    """Files of ``directory`` that fwdstep wrote: listed in its manifest (and still regular
+    files, reached without a symbolic link), or legacy result files when there is no
+    manifest.  Names inside a folder fwdstep wrote read 'diagram/theorem1.yaml'."""
     try:
         with open(os.path.join(directory, MANIFEST_FILE), "rb") as fh:
             if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
@@ -329,10 +372,14 @@ def owned_files(directory: str) -> set:
         listed = set(LEGACY_FILES)
     out = set()
     for n in listed:
-        if not isinstance(n, str) or os.path.basename(n) != n or n in ("", ".", ".."):
+        parts = n.split("/") if isinstance(n, str) else [""]
+        if any(p in ("", ".", "..") or os.sep in p for p in parts) or os.path.isabs(n):
             continue
         try:
-            if stat.S_ISREG(os.lstat(os.path.join(directory, n)).st_mode):
+            for k in range(1, len(parts)):      # no symbolic link on the way
+                if not stat.S_ISDIR(os.lstat(os.path.join(directory, *parts[:k])).st_mode):
+                    raise OSError
+            if stat.S_ISREG(os.lstat(os.path.join(directory, *parts)).st_mode):
                 out.add(n)
         except OSError:
             pass

@@ -10,6 +10,7 @@ import numpy as np
 
 from fwdstep.core.errors import OutputError, printable
 from fwdstep.core.files import atomic_write, safe_path  # noqa: F401  (re-exported for readers of results)
+from fwdstep.core.jsonable import jsonable as _jsonable
 
 RESULT_FILE = "result.npz"
 SUMMARY_FILE = "summary.json"
@@ -132,17 +133,26 @@ class Result:
         return out[0] if self.batch == 1 else out
 
     # ------------------------------------------------------------------ writing
-    def summary(self) -> dict:
+    def summary(self, provenance: dict | None = None) -> dict:
+        """What summary.json holds.  ``parameters``: the diagram's parameters as evaluated
+        after ``--set``; ``blocks``: every block's parameters as evaluated (a ``--set
+        Ks.gain=...`` shows there); ``simulation``: every setting as run; ``provenance``
+        (``fwdstep.results.provenance``) when written into an output directory; ``diagram``
+        then names the copy of the diagram as run, relative to that directory."""
         d = self.diagram
         cfg = d.spec.simulation if d is not None else None
-        params = [_jsonable(p) for p in d.variant_parameters] if d is not None else []
-        return {
+        params = [parameter_json(p) for p in d.variant_parameters] if d is not None else []
+        diagram = None
+        if provenance and provenance.get("diagram"):
+            diagram = provenance["diagram"]
+        elif d is not None:
+            diagram = os.path.abspath(d.file)
+        out = {
             "status": self.status,
             "message": self.message,
-            "diagram": d.file if d is not None else None,
+            "diagram": diagram,
             "parameters": params[0] if len(params) == 1 else params,
-            "simulation": {"t_final": cfg.t_final, "step": cfg.step, "solver": cfg.solver,
-                           "log_every": cfg.log_every, "bound": cfg.bound} if cfg else None,
+            "simulation": settings_json(cfg, getattr(self, "backend", None)) if cfg else None,
             "t_reached": float(self.t[-1]) if len(self.t) else None,
             "steps": int(self.steps),
             "batch": self.batch,
@@ -151,32 +161,52 @@ class Result:
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
             **_figure_summary(self),
         }
+        if d is not None and self.batch == 1:
+            out["blocks"] = {e.name: {"type": e.type_name,
+                                      **{k: parameter_json(v) for k, v in e.params.items()}}
+                             for e in d.spec.blocks}
+        if provenance:
+            out["provenance"] = provenance
+        return out
 
     def save(self, outdir: str, force: bool = True) -> list:
-        """Write ``result.npz``, ``summary.json`` and ``manifest.json`` into ``outdir`` as one
+        """Write ``result.npz``, ``summary.json``, the copy of the diagram as run (``diagram/``,
+        see ``write_files``) and ``manifest.json`` into ``outdir`` as one
         transaction (``fwdstep.results.outputs.OutputDir``: locked, staged, one rename); replaces
         results fwdstep wrote there before (``force=False`` refuses to), never another file
         or a symbolic link.  Returns the paths written."""
         from fwdstep.results.outputs import OutputDir
-        with OutputDir(outdir, force=force, expected=[RESULT_FILE, SUMMARY_FILE]) as out:
+        from fwdstep.results.provenance import COPY_DIR
+        with OutputDir(outdir, force=force, expected=[RESULT_FILE, SUMMARY_FILE,
+                                                      COPY_DIR]) as out:
             self.write_files(out.dir)
             return out.commit()
 
-    def write_files(self, outdir: str) -> list:
+    def write_files(self, outdir: str, record: dict | None = None) -> list:
         """Write ``result.npz`` and ``summary.json`` atomically into the directory ``outdir``
-        (the staging directory of an ``OutputDir``; ``save`` is the transaction)."""
+        (the staging directory of an ``OutputDir``; ``save`` is the transaction), and, for a
+        result of a loaded diagram, the copy of the diagram as run (``diagram/``) with the
+        record of what made the run (``fwdstep.results.provenance``; ``record``: what only
+        the caller knows, e.g. the command line and ``--set`` as typed)."""
         os.makedirs(outdir, exist_ok=True)
         arrays = {"t": self.t}
         for k, v in self._signals.items():
             arrays[k] = v[:, 0] if self.batch == 1 else v
+        provenance = None
+        copied = []
+        if self.diagram is not None:
+            from fwdstep.results import provenance as prov
+            copies = prov.copy_sources(self.diagram.spec, outdir)
+            provenance = prov.record(self, copies, record)
+            copied = [os.path.join(outdir, *f["copy"].split("/")) for f in copies["files"]]
         paths = [safe_path(outdir, RESULT_FILE), safe_path(outdir, SUMMARY_FILE)]
-        summary = json.dumps(self.summary(), indent=2)
+        summary = json.dumps(self.summary(provenance), indent=2)
         # both files are complete on disk before either replaces an old one
         with atomic_write(paths[0], lambda fh: np.savez(fh, **arrays), binary=True,
                           commit=False) as commit_result:
             atomic_write(paths[1], lambda fh: fh.write(summary))
             commit_result()
-        return paths
+        return paths + copied
 
 
     # ------------------------------------------------------------------ notebooks
@@ -355,17 +385,37 @@ def _scaled_norm(a: np.ndarray, axis: int):
     return np.squeeze(norm, axis=axis)
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    return obj
+def settings_json(cfg, backend: str | None = None) -> dict:
+    """Every simulation setting as run (``--set simulation.X`` and ``--backend`` applied)."""
+    import dataclasses
+    out = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("defaulted", "given")}
+    if backend:
+        out["backend"] = backend
+    return _jsonable(out)
+
+
+#: arrays larger than this are recorded by shape and SHA-256 instead of every number
+MAX_RECORDED_NUMBERS = 4096
+
+
+def parameter_json(value):
+    """A parameter value as JSON, as a person would write it: whole numbers as integers
+    (``ell: 2`` stays 2, not 2.0), arrays as nested lists; a very large array as its shape
+    and SHA-256."""
+    if isinstance(value, dict):
+        return {str(k): parameter_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [parameter_json(v) for v in value]
+    if isinstance(value, np.ndarray) and value.dtype.kind in "fiub":
+        if value.size > MAX_RECORDED_NUMBERS:
+            import hashlib
+            return {"shape": list(value.shape), "dtype": value.dtype.str,
+                    "sha256": hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()}
+        if value.dtype.kind == "f" and np.all(np.isfinite(value)) and \
+                np.all(value == np.floor(value)) and np.all(np.abs(value) < 2.0 ** 53):
+            return value.astype(np.int64).tolist()
+        return _jsonable(value)
+    if isinstance(value, (float, np.floating)) and not isinstance(value, bool):
+        if np.isfinite(value) and float(value).is_integer() and abs(value) < 2.0 ** 53:
+            return int(value)
+    return _jsonable(value)

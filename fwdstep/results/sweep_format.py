@@ -15,6 +15,8 @@ CSV_FILE = "sweep.csv"
 FIGURE_FILE = "sweep.png"
 #: the labelled results (``--netcdf``)
 DATASET_FILE = "sweep.nc"
+#: what made the sweep (``fwdstep.results.provenance``) and its variants
+RECORD_FILE = "sweep.json"
 #: finished batches, one file each, kept for ``--resume``
 PARTS_DIR = "parts"
 #: the error metrics of a sweep's rows, in column order

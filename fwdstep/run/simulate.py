@@ -88,6 +88,22 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     at most ``max_log_bytes`` in memory (default ``budgets.DEFAULT_MAX_LOG_BYTES``, 2 GiB),
     or, with ``log_dir``, half the free space there; else ``ConfigError`` with the numbers.
     """
+    used = backend or d.spec.simulation.backend
+    try:
+        result = _simulate(d, progress, x0, fuse=fuse, backend=backend, log_dir=log_dir,
+                           max_log_bytes=max_log_bytes)
+    except SimulationError as exc:
+        if exc.result is not None:
+            exc.result.backend = used      # the record of the run (fwdstep.results.provenance)
+        raise
+    result.backend = used
+    return result
+
+
+def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
+              fuse: bool = True, backend: str | None = None,
+              log_dir: str | None = None, max_log_bytes: int | None = None) -> Result:
+    """``simulate`` without recording the backend used."""
     from fwdstep.core.budgets import check_log
     check_log(d, max_log_bytes, to_disk=log_dir, api=True)
     cfg = d.spec.simulation

@@ -330,14 +330,15 @@ def _logged_signals(spec: DiagramSpec, index: dict) -> list:
 
 
 def load_diagram(path: str, overrides: dict | None = None,
-                 plugins: list | None = None) -> CompiledDiagram:
+                 plugins: list | None = None, redirects: dict | None = None) -> CompiledDiagram:
     """Load, validate and compile a diagram file.  ``overrides`` maps parameter names to values
     (numbers, lists or expression strings) that replace the file's before anything is built.
-    ``plugins``: Python files defining more blocks (docs/writing-blocks.md), imported first."""
+    ``plugins``: Python files defining more blocks (docs/writing-blocks.md), imported first.
+    ``redirects``: see ``fwdstep.structure.spec.load_spec`` (a run's recorded copy)."""
     if plugins:
         from fwdstep.structure.library import load_plugins
         load_plugins(plugins)
-    return compile_spec(load_spec(path, overrides))
+    return compile_spec(load_spec(path, overrides, redirects=redirects))
 
 
 __all__ = ["CompiledDiagram", "load_diagram", "compile_batch", "compile_spec", "DiagramError"]

@@ -103,6 +103,8 @@ def _load_file(path: str):
     spec = importlib.util.spec_from_file_location(name, full)
     module = importlib.util.module_from_spec(spec)
     module.__fwdstep_plugin__ = path
+    with open(full, "rb") as fh:             # what is imported, for the record of each run
+        module.__fwdstep_sha256__ = hashlib.sha256(fh.read()).hexdigest()
     sys.modules[name] = module
     _plugin_files[full] = module
     try:
@@ -123,6 +125,17 @@ def _load_file(path: str):
         raise ConfigError(f"plugin '{path}{line}' failed to load: "
                           f"{type(exc).__name__}: {exc}") from None
     return module
+
+
+def plugin_files() -> list:
+    """(absolute path, SHA-256 of the file as imported) of every plugin file loaded in this
+    process, in load order (recorded by every run: ``fwdstep.results.provenance``)."""
+    return [(path, module.__fwdstep_sha256__) for path, module in _plugin_files.items()]
+
+
+def file_sha256(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()
 
 
 def lookup(type_name: str):

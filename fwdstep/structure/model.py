@@ -35,6 +35,18 @@ class Connection:
     text: str
 
 
+@dataclass(frozen=True)
+class SourceFile:
+    """A file the loader read: the top-level diagram (``kind`` "diagram"), a subsystem
+    ("subsystem") or a block's data file ("file", a ``Param("file")`` such as a URDF).
+    ``named``: the name as written, by ``by`` (the including file; "" for the command line,
+    None for the top-level diagram)."""
+    path: str
+    kind: str
+    named: str | None = None
+    by: str | None = None
+
+
 @dataclass
 class DiagramSpec:
     file: str
@@ -56,6 +68,7 @@ class DiagramSpec:
     #: the ``--set`` overrides it was loaded with (a parameter's derivative reloads the file
     #: with these plus the perturbed value: fwdstep.analysis.sensitivity)
     overrides: dict = field(default_factory=dict)
+    sources: list = field(default_factory=list)       # every file read, as SourceFile
 
 
 def kind_of(value) -> str:

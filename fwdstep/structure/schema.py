@@ -36,7 +36,7 @@ def _param_schema(decl) -> dict:
         out = dict(ARRAY)
     elif kind == "bool":
         out = {"anyOf": [{"type": "boolean"}, EXPRESSION]}
-    elif kind == "str":
+    elif kind in ("str", "file"):
         out = {"type": "string"}
     elif kind == "names":
         out = {"anyOf": [{"type": "array", "items": {"type": "string"}}, {"type": "string"}]}

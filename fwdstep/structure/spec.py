@@ -35,8 +35,8 @@ from fwdstep.core.mathtext import problem as mathtext_problem
 from fwdstep.core.settings import BACKENDS, SIMULATION_KEYS, SOLVER_NAMES, SimulationConfig
 from fwdstep.structure.sampled import sample_subsystem
 from fwdstep.structure.shapes import infer_shapes
-from fwdstep.structure.model import (BlockEntry, Connection, DiagramSpec, _line, evaluate_ragged,
-                                     evaluate_value, kind_of)
+from fwdstep.structure.model import (BlockEntry, Connection, DiagramSpec, SourceFile, _line,
+                                     evaluate_ragged, evaluate_value, kind_of)
 from fwdstep.core.search import SearchPath, check_regular_file
 from fwdstep.core.yamlio import LineDict, LineList, parse_yaml_text, read_yaml_file
 
@@ -374,7 +374,12 @@ class _Level:
                                      f"'{key}'; valid parameters are: "
                                      f"{', '.join(cls.params) or '(none)'}", file=file,
                                      line=kline, block=self.full(name))
-            if decl.kind in ("str", "choice", "names"):
+            if decl.kind == "file" and isinstance(value, str) and value:
+                params[key] = self.search.data_file(value, None if from_set else file)
+                source = SourceFile(params[key], "file", value, "" if from_set else file)
+                if os.path.isfile(params[key]) and source not in self.search.read:
+                    self.search.read.append(source)
+            elif decl.kind in ("str", "choice", "names", "file"):
                 params[key] = value
             elif decl.kind == "bool" and isinstance(value, bool):
                 params[key] = value
@@ -405,6 +410,7 @@ class _Level:
                               file=file, line=line)
         path = self.search.resolve(body["file"], file, f"subsystem '{self.full(name)}'",
                                    _line(body, "file"))
+        self.search.read.append(SourceFile(path, "subsystem", body["file"], file))
         if os.path.realpath(path) in self.stack:     # realpath: symbolic links too
             chain = " -> ".join(os.path.basename(p) for p in self.stack + (path,))
             raise ConfigError(f"subsystem '{self.full(name)}' includes itself: {chain}",
@@ -783,7 +789,7 @@ def split_overrides(overrides: dict, parameters) -> tuple:
 
 
 def load_spec(path: str, overrides: dict | None = None,
-              cache: dict | None = None) -> DiagramSpec:
+              cache: dict | None = None, redirects: dict | None = None) -> DiagramSpec:
     """Read, check and flatten a diagram file (and its subsystems).  ``cache``: see
     ``_read_document`` (parse each file once across many loads).
 
@@ -791,11 +797,16 @@ def load_spec(path: str, overrides: dict | None = None,
     ``log`` (the list of logged signals), ``BLOCK.PARAM`` a block's parameter,
     ``SUB.PARAM`` a subsystem's parameter, ``SUB.BLOCK.PARAM`` (any depth) a parameter of a
     block inside a subsystem.  Every mistake that can be found is collected; the first is
-    raised with the others in its ``more`` attribute (``fwdstep validate`` prints them all)."""
+    raised with the others in its ``more`` attribute (``fwdstep validate`` prints them all).
+
+    ``redirects`` ``{(including file, name as written): file}`` makes ``file:`` and
+    ``Param("file")`` names read other files: a run's recorded copy
+    (``fwdstep.results.provenance``).  The spec keeps the overrides as given and every file
+    read (``spec.sources``), so a run can record what made it."""
     errors: list = []
     spec = None
     try:
-        spec = _load(os.path.normpath(path), overrides, cache, errors)
+        spec = _load(os.path.normpath(path), overrides, cache, errors, redirects)
     except DiagramError as exc:
         errors.append(exc)
     if errors:
@@ -806,9 +817,11 @@ def load_spec(path: str, overrides: dict | None = None,
     return spec
 
 
-def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -> DiagramSpec:
+def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
+          redirects: dict | None = None) -> DiagramSpec:
     cache = {} if cache is None else cache     # a subsystem used many times is parsed once
     doc = _read_document(path, cache)
+    given = dict(overrides or {})
     budget = Budget()
     overrides, sim_overrides, log_override, paths = split_overrides(
         overrides, doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {})
@@ -825,7 +838,8 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
         doc["simulation"] = merged
     if log_override is not None:
         doc["log"] = log_override
-    search = SearchPath(path)
+    search = SearchPath(path, redirects)
+    search.read.append(SourceFile(os.path.abspath(path), "diagram"))
     total = count_blocks(path, doc, search, cache)
     if total > MAX_BLOCKS:
         raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
@@ -907,7 +921,8 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list) -
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
                        input_ports=level.input_ports, signal_info=signal_info,
-                       signal_lines=level.signal_lines, sampled=level.sampled)
+                       signal_lines=level.signal_lines, sampled=level.sampled,
+                       overrides=given, sources=list(search.read))
     if not errors:
         infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
     return spec

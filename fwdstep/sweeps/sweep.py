@@ -82,7 +82,7 @@ from fwdstep.sweeps.sampling import (MAX_VARIANTS, parse_grid, parse_random, spl
                        variant_seeds, variant_values)
 from fwdstep.run.simulate import SimulationInterrupted, simulate
 from fwdstep.sweeps.variants import VariantSpecs
-from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE, METRICS,  # noqa: F401
+from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE, METRICS, RECORD_FILE,  # noqa: F401
                                           PARTS_DIR, cell_text as _text)
 
 #: Largest batch; a group with more variants runs in several batches.
@@ -121,6 +121,7 @@ class SweepResult:
     outdir: str | None = None                      # where the parts were written
     keep_signals: bool = False                     # parts hold every variant's error signal
     signal_info: dict = field(default_factory=dict)  # the error signal's name, label, unit
+    base_spec: object = None                       # the diagram as loaded (its record)
 
     def counts(self) -> dict:
         out: dict = {}
@@ -156,10 +157,14 @@ class SweepResult:
         from fwdstep.results.labelled import sweep_dataset
         return sweep_dataset(self)
 
-    def write(self, outdir: str, plots: bool = True, dataset: bool = False) -> list:
-        """Write sweep.csv, sweep.png and (``dataset=True``, when signals were kept) sweep.nc
-        into ``outdir``; returns the paths written."""
+    def write(self, outdir: str, plots: bool = True, dataset: bool = False,
+              record: dict | None = None) -> list:
+        """Write sweep.csv, sweep.png, (``dataset=True``, when signals were kept) sweep.nc,
+        and sweep.json with the copy of the diagram as run (``diagram/``) and the record of
+        what made the sweep (``fwdstep.results.provenance``; ``record``: what only the
+        caller knows, e.g. the command line) into ``outdir``; returns the paths written."""
         os.makedirs(outdir, exist_ok=True)
+        written = self._write_record(outdir, record)
         rows = self.rows()
         buf = io.StringIO()
         columns = ["variant", *self.names, "batch", "status", "diverged_at", *METRICS,
@@ -170,13 +175,29 @@ class SweepResult:
             writer.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
         path = safe_path(outdir, CSV_FILE)
         atomic_write(path, lambda fh: fh.write(buf.getvalue()))
-        written = [path]
+        written.append(path)
         if dataset and self.has_signals():
             from fwdstep.results.labelled import write_dataset
             written.append(write_dataset(self, safe_path(outdir, DATASET_FILE)))
         if plots and self.metric_signal is not None and any(v.metrics for v in self.variants):
             written.append(plot_sweep(self, outdir))
         return written
+
+    def _write_record(self, outdir: str, record: dict | None) -> list:
+        if self.base_spec is None:
+            return []
+        from fwdstep.results import provenance
+        copies = provenance.copy_sources(self.base_spec, outdir)
+        prov = provenance.record_spec(self.base_spec, copies, record,
+                                      backend=self.settings.get("backend"))
+        doc = {"diagram": copies["diagram"], "provenance": prov,
+               "sweep": {"parameters": list(self.names),
+                         "variants": [_jsonable(v.values) for v in self.variants],
+                         "counts": self.counts(), "wall_time_s": round(self.wall_time, 6)}}
+        path = safe_path(outdir, RECORD_FILE)
+        text = json.dumps(doc, indent=2)
+        atomic_write(path, lambda fh: fh.write(text))
+        return [path] + [os.path.join(outdir, *f["copy"].split("/")) for f in copies["files"]]
 
     def has_signals(self) -> bool:
         return self.keep_signals and any(v.status in ("ok", "diverged") for v in self.variants)
@@ -228,17 +249,22 @@ def settings_key(spec, memo: dict | None = None) -> tuple:
     reuses the key of fields that are the very same objects as an earlier spec's (variants
     derived from one load share their connections, log, ...)."""
     rest = [(name, getattr(spec, name)) for name in _field_names(type(spec))
-            if name not in ("parameters", "blocks", "overrides")]
+            if name not in _NOT_SETTINGS]
     if memo is not None:
         shared = tuple(id(value) for name, value in rest if name != "simulation")
         if shared not in memo:
             memo[shared] = settings_key(dataclasses.replace(
-                spec, simulation=None, parameters={}, blocks=[], overrides={}))
+                spec, simulation=None, parameters={}, blocks=[], overrides={}, sources=[]))
         return memo[shared] + settings_key(spec.simulation)
     try:            # equal bytes: equal content (unequal bytes only split a batch further)
         return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)
     except (pickle.PicklingError, TypeError, AttributeError):
         return tuple((name, _value_key(_plain(value))) for name, value in rest)
+
+
+#: spec fields that never reach the numbers on their own: the parameters and overrides reach
+#: them only through the blocks, the files read are a record of where they came from
+_NOT_SETTINGS = ("parameters", "blocks", "overrides", "sources")
 
 
 @functools.lru_cache(maxsize=None)
@@ -508,7 +534,8 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
     result = SweepResult(diagram=path, names=names, variants=table, batches=[],
                          traces={}, metric_signal=metric,
                          settings=_plain(base.simulation), outdir=outdir,
-                         keep_signals=keep_signals and metric is not None)
+                         keep_signals=keep_signals and metric is not None,
+                         base_spec=base)
     done = _resume(result, outdir) if resume else set()
     if outdir is not None and not resume:
         parts = os.path.join(outdir, PARTS_DIR)

@@ -71,9 +71,9 @@ def _pairs(d: dict) -> str:
     return _table([{"name": k, "value": v} for k, v in (d or {}).items()], ["name", "value"])
 
 
-def _diagram_section(summary: dict) -> list:
-    """The "Diagram" heading, the picture of ``summary['diagram']`` and any note about it."""
-    svg, note = diagram_picture(summary)
+def _diagram_section(summary: dict, run_dir: str | None = None) -> list:
+    """The "Diagram" heading, the picture of the run's diagram and any note about it."""
+    svg, note = diagram_picture(summary, run_dir)
     out = ["<h2>Diagram</h2>"]
     if svg is not None:         # the whole picture at the page's width; a click opens it
         picture = _img(svg, "image/svg+xml", "block diagram").replace(
@@ -86,21 +86,50 @@ def _diagram_section(summary: dict) -> list:
     return out
 
 
-def diagram_picture(summary: dict) -> tuple:
-    """(SVG bytes or None, note) of the run's diagram, with the parameters as run."""
-    import shutil
+def recorded_diagram(summary: dict, run_dir: str | None):
+    """The run's diagram as it was run: loaded from the copy kept in ``run_dir`` with the
+    recorded ``--set`` values (``fwdstep.results.provenance``), never from the working tree.
+    A run written before fwdstep kept copies: its stored path and parameters."""
+    from fwdstep.structure.compiler import load_diagram
+    from fwdstep.core.errors import FwdstepError
+    prov = summary.get("provenance")
+    if isinstance(prov, dict) and prov.get("diagram") and run_dir is not None:
+        from fwdstep.results.provenance import load_recorded
+        top, overrides, redirects = load_recorded(run_dir, prov)
+        _plugins_of(prov)
+        return load_diagram(top, overrides, redirects=redirects)
     path = summary.get("diagram")
     if not path or not os.path.isfile(path):
-        return None, f"the diagram file {path} is not here; no picture"
-    from fwdstep.structure.compiler import load_diagram
-    from fwdstep.views.drawing import diagram_dot, layered_bytes, picture_for, render_dot
-    from fwdstep.core.errors import FwdstepError
+        raise FileNotFoundError(f"the diagram file {path} is not here; no picture")
     params = summary.get("parameters")
     try:
-        try:
-            d = load_diagram(path, params if isinstance(params, dict) else None)
-        except FwdstepError:
-            d = load_diagram(path)
+        return load_diagram(path, params if isinstance(params, dict) else None)
+    except FwdstepError:
+        return load_diagram(path)
+
+
+def _plugins_of(prov: dict) -> None:
+    """Load the run's plugin files that are still there (a picture needs their block types;
+    drawing runs none of their numbers, so a changed file is drawn, not refused)."""
+    from fwdstep.structure.library import load_plugins
+    files = [e.get("file") for e in prov.get("plugins") or []
+             if isinstance(e.get("file"), str) and os.path.isfile(e["file"])]
+    if files:
+        load_plugins(files)
+
+
+def diagram_picture(summary: dict, run_dir: str | None = None) -> tuple:
+    """(SVG bytes or None, note) of the run's diagram, with the parameters as run."""
+    import shutil
+    from fwdstep.views.drawing import diagram_dot, layered_bytes, picture_for, render_dot
+    from fwdstep.core.errors import FwdstepError
+    try:
+        d = recorded_diagram(summary, run_dir)
+    except FileNotFoundError as exc:
+        return None, str(exc)
+    except FwdstepError as exc:
+        return None, f"no picture: {exc}"
+    try:
         if shutil.which("dot"):
             return render_dot(diagram_dot(picture_for(d)), "svg"), ""
         nested = any("/" in b.name for b in d.blocks)     # as fwdstep graph's fallback
@@ -109,6 +138,56 @@ def diagram_picture(summary: dict) -> tuple:
                 + ("; subsystems as boxes" if nested else ""))
     except FwdstepError as exc:
         return None, f"no picture: {exc}"
+
+
+def _parameters_section(s: dict) -> list:
+    """What the run was made of: the command-line values as typed, the diagram's parameters
+    and every simulation setting as run, and each block's parameters as evaluated."""
+    prov = s.get("provenance") if isinstance(s.get("provenance"), dict) else {}
+    out = ["<h2>Parameters as run</h2>"]
+    sets = prov.get("sets")
+    if sets:
+        out.append("<p>Set on the command line: " + ", ".join(
+            f"<code>{html.escape(str(x))}</code>" for x in sets) + "</p>")
+    elif prov.get("overrides"):
+        out.append("<p>Overrides: " + html.escape(_value(prov["overrides"])) + "</p>")
+    params = s.get("parameters")
+    out.append("<h3>Diagram parameters</h3>")
+    out.append(_table(params) if isinstance(params, list) else _pairs(params or {}))
+    out.append("<h3>Simulation settings</h3>" + _pairs(s.get("simulation") or {}))
+    blocks = s.get("blocks")
+    if blocks:
+        set_paths = {str(x).split("=", 1)[0].strip() for x in sets or []}
+        rows = []
+        for name, values in blocks.items():
+            dotted = name.replace("/", ".")
+            for key, v in values.items():
+                if key == "type":
+                    continue
+                rows.append({"block": name, "type": values.get("type"), "parameter": key,
+                             "value": v, "set": "--set" if f"{dotted}.{key}" in set_paths
+                             else ""})
+        out.append("<h3>Block parameters</h3>")
+        overridden = [r for r in rows if r["set"]]
+        if overridden:
+            out.append(_table(overridden, ["block", "parameter", "value", "set"]))
+        out.append(f"<details><summary>every block ({len(blocks)})</summary>"
+                   f"{_table(rows, ['block', 'type', 'parameter', 'value', 'set'])}</details>")
+    if prov:
+        facts = {k: prov.get(k) for k in ("fwdstep_version", "source_commit", "backend",
+                                          "python", "numpy", "started", "diagram_source",
+                                          "rerun_of") if prov.get(k)}
+        if prov.get("command"):
+            facts["command"] = " ".join(prov["command"])
+        for entry in prov.get("plugins") or []:
+            facts[f"plugin {entry.get('file')}"] = f"SHA-256 {entry.get('sha256')}"
+        out.append("<h3>Provenance</h3>" + _pairs(facts))
+        files = prov.get("files") or []
+        if files:
+            out.append(_table([{"copy": f.get("copy"), "kind": f.get("kind"),
+                                "original": f.get("source"), "SHA-256": f.get("sha256")}
+                               for f in files], ["copy", "kind", "original", "SHA-256"]))
+    return out
 
 
 def report_html(run_dir: str) -> str:
@@ -138,14 +217,8 @@ def report_html(run_dir: str) -> str:
                  "steps": s.get("steps"), "variants": s.get("batch"),
                  "wall time [s]": s.get("wall_time_s"), "run directory": run_dir}
         parts.append(_pairs(facts))
-        parts.extend(_diagram_section(s))
-        parts.append("<h2>Parameters as run</h2>")
-        params = s.get("parameters")
-        if isinstance(params, list):
-            parts.append(_table(params))
-        else:
-            parts.append(_pairs(params or {}))
-        parts.append("<h2>Solver settings</h2>" + _pairs(s.get("simulation") or {}))
+        parts.extend(_diagram_section(s, run_dir))
+        parts.extend(_parameters_section(s))
         parts.append("<h2>Metrics</h2>")
         m = s.get("metrics")
         parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
@@ -202,8 +275,15 @@ def _sweep_extras(run_dir: str, has_run: bool) -> list:
     except FwdstepError as exc:
         return [f"<p>{html.escape(f'no comparison of variants: {exc}')}</p>"]
     diagram = getattr(runs[0].result, "diagram_file", None)
-    if diagram and not has_run:
-        out.extend(_diagram_section({"diagram": diagram}))
+    if not has_run:
+        try:
+            import json
+            with open(os.path.join(run_dir, "sweep.json"), encoding="utf-8") as fh:
+                recorded = json.load(fh)
+        except (OSError, ValueError):
+            recorded = {"diagram": diagram} if diagram else None
+        if recorded:
+            out.extend(_diagram_section(recorded, run_dir))
     picked = runs if len(runs) <= MAX_SWEEP_SHOWN else [
         runs[int(k)] for k in np.unique(np.linspace(0, len(runs) - 1, MAX_SWEEP_SHOWN)
                                         .astype(int))]

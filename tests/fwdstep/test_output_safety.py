@@ -43,7 +43,8 @@ def test_run_writes_only_inside_outdir(diagram, tmp_path, capsys, monkeypatch):
     assert cli.main(["run", diagram, "-o", "results/one", "-q"]) == 0
     new = tree(tmp_path) - before
     assert new == {"results/one/result.npz", "results/one/summary.json",
-                   "results/one/integral.png", "results/one/manifest.json"}
+                   "results/one/integral.png", "results/one/manifest.json",
+                   "results/one/diagram/d.yaml"}     # the copy of the diagram as run
 
 
 @pytest.mark.parametrize("name", ["../escape.npz", "/etc/passwd", "sub/result.npz", "", ".",
@@ -128,7 +129,7 @@ def test_failed_write_leaves_old_results_and_no_temporary_files(diagram, tmp_pat
     assert code == 2
     assert capsys.readouterr().err == (f"fwdstep: cannot write results to {outdir}: [Errno 28] "
                                        "No space left on device\n")
-    assert sorted(os.listdir(outdir)) == ["manifest.json", "result.npz", "summary.json"]
+    assert sorted(os.listdir(outdir)) == ["diagram", "manifest.json", "result.npz", "summary.json"]
     assert {f: (outdir / f).read_bytes() for f in old} == old
     with np.load(outdir / "result.npz") as data:       # still the complete old file
         assert data["int.y"].shape == (11, 2)
@@ -151,7 +152,7 @@ def test_failed_summary_write_keeps_both_old_files(diagram, tmp_path, monkeypatc
     with pytest.raises(Boom):
         r.save(str(outdir))
     assert {f: (outdir / f).read_bytes() for f in old} == old    # npz not replaced either
-    assert sorted(os.listdir(outdir)) == ["manifest.json", "result.npz", "summary.json"]
+    assert sorted(os.listdir(outdir)) == ["diagram", "manifest.json", "result.npz", "summary.json"]
 
 
 def test_interrupt_while_writing_keeps_old_results(diagram, tmp_path, monkeypatch):
@@ -168,7 +169,7 @@ def test_interrupt_while_writing_keeps_old_results(diagram, tmp_path, monkeypatc
     with pytest.raises(KeyboardInterrupt):
         r.save(str(outdir))
     assert (outdir / "result.npz").read_bytes() == old
-    assert sorted(os.listdir(outdir)) == ["manifest.json", "result.npz", "summary.json"]
+    assert sorted(os.listdir(outdir)) == ["diagram", "manifest.json", "result.npz", "summary.json"]
 
 
 def test_results_have_ordinary_permissions(diagram, tmp_path):
@@ -200,4 +201,4 @@ def test_fwdsteps_own_manifest_is_replaced_with_force(diagram, tmp_path, capsys)
     assert cli.main(["run", diagram, "-o", str(outdir), "-q", "--no-plots", "--force"]) == 0
     manifest = json.loads((outdir / "manifest.json").read_text())
     assert manifest["written_by"] == "fwdstep"
-    assert sorted(manifest["files"]) == ["result.npz", "summary.json"]
+    assert sorted(manifest["files"]) == ["diagram/d.yaml", "result.npz", "summary.json"]
