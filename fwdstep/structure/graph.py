@@ -96,8 +96,10 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
     drivers: dict = {}
     where: dict = {}
     where_file: dict = {}
+    lost: set = set()       # inputs wired to a block that failed: connected, source unknown
     for conn in spec.connections:
         if conn.src[0] in failed or conn.dst[0] in failed:
+            lost.add(conn.dst)      # its missing ports would only repeat that block's error
             continue
         try:
             _check_connection(conn, by_name, drivers, where)
@@ -112,7 +114,7 @@ def build_structure(spec: DiagramSpec, blocks: list | None = None) -> Structure:
     for blk in blocks:
         for port in blk.inputs.values():
             if (blk.name, port.name) not in drivers and not port.optional:
-                if blk.name in failed:
+                if blk.name in failed or (blk.name, port.name) in lost:
                     continue        # a connection into this block was wrong: reported already
                 outer = spec.input_ports.get((blk.name, port.name))
                 if outer is not None:     # name the subsystem's port, where the user can fix it

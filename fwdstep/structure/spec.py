@@ -154,6 +154,7 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
         needs[name] = {d for d in deps if d in pending and d != name}
         for d in needs[name]:
             users[d].append(name)
+    uses = {name: set(deps) for name, deps in needs.items()}     # kept: needs is consumed
     ready = [name for name in pending if not needs[name]]
     done = 0
     while done < len(ready):
@@ -163,7 +164,9 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
             if budget is not None:
                 budget.charge(namespace[name], f"parameter '{name}'")
         except DiagramError as exc:
-            raise exc.located(file, _line(raw, name)) from None
+            if getattr(exc, "fatal", False):
+                raise exc.located(file, _line(raw, name)) from None
+            raise _blame_override(exc, name, uses, overrides or {}, raw, file) from None
         done += 1
         for user in users[name]:
             needs[user].discard(name)
@@ -174,6 +177,38 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
         raise ExpressionError(f"parameters {', '.join(left)} refer to each other in a cycle",
                               file=file, line=_line(raw, left[0]))
     return namespace
+
+
+def _blame_override(exc: DiagramError, name: str, uses: dict, overrides: dict, raw,
+                    file: str) -> DiagramError:
+    """A parameter that fails only because a ``--set`` value reached it: the error names the
+    ``--set`` (the user's mistake) first, at that parameter's line, then what it broke."""
+    reached, todo = [], [name]
+    seen = set()
+    while todo:                      # the parameters ``name`` depends on, transitively
+        current = todo.pop()
+        if current in seen:
+            continue
+        seen.add(current)
+        if current in overrides and current not in reached:
+            reached.append(current)
+        todo.extend(uses.get(current, ()))
+    if not reached:
+        return exc.located(file, _line(raw, name))
+    culprit = reached[0] if name not in overrides else name
+    shown = overrides[culprit]
+    if culprit == name:
+        why = exc.message
+    else:
+        inner = exc.message
+        if "cannot be evaluated: " in inner:       # the expression itself is the file's
+            inner = inner.split("cannot be evaluated: ", 1)[1]
+        elif inner.startswith(f"parameter '{name}'"):
+            inner = inner[len(f"parameter '{name}'"):].lstrip(": ")
+        why = f"parameter '{name}', which uses {culprit}, cannot be evaluated: {inner}"
+    out = type(exc)(f"--set {culprit}={shown}: {why}", file=file, line=_line(raw, culprit),
+                    block=exc.block, port=exc.port)
+    return out
 
 
 def _strings_in(value):

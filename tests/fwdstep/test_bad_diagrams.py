@@ -359,5 +359,6 @@ def test_set_malformed(good, capsys, arg, message):
 def test_set_known_parameter_still_checked(good, capsys):
     assert cli.main(["validate", good, "--set", "alpha=__import__('os')"]) == 2
     err = capsys.readouterr().err
-    assert err == (f"fwdstep: {good}:3: parameter 'alpha': expression '__import__('os')' "
+    assert err == (f"fwdstep: {good}:3: --set alpha=__import__('os'): parameter 'alpha': "
+                   "expression '__import__('os')' "
                    "uses the name '__import__'; names starting with '__' are never allowed\n")
