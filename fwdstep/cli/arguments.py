@@ -218,12 +218,16 @@ def _add_results_commands(sub, run) -> None:
     gr.add_argument("--tags", choices=("auto", "on", "off"), default="auto",
                     help="draw a signal that feeds 3 or more blocks as named tags instead of "
                          "wires (auto: in pictures of more than 30 boxes)")
+    gr.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                    help=_PLUGIN_HELP)
     rep = sub.add_parser("report", help="one self-contained HTML page of a run or sweep "
                                         "directory: diagram, parameters, metrics, figures")
     rep.add_argument("run_dir", metavar="RUN_DIR",
                      help="a directory written by fwdstep run or fwdstep sweep")
     rep.add_argument("-o", "--output", default=None,
                      help="the HTML file (default: RUN_DIR/report.html)")
+    rep.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP + "; a run's own plugin files are loaded from its record")
     ani = sub.add_parser("animate", help="replay the robot of a run (or two, overlaid) in one "
                                          "self-contained HTML page (3-D for URDF arms)")
     ani.add_argument("runs", nargs="+", metavar="RUN_DIR",
@@ -232,6 +236,8 @@ def _add_results_commands(sub, run) -> None:
                      help="the HTML file (default: RUN_DIR/animation.html)")
     ani.add_argument("--fps", type=float, default=30.0,
                      help="frames per second of simulated time kept (default 30)")
+    ani.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
     cmp = sub.add_parser("compare", help="overlay the same signals of saved runs, their "
                                          "differences and a metrics table")
     cmp.add_argument("runs", nargs="+", metavar="RUN_DIR",
@@ -246,6 +252,8 @@ def _add_results_commands(sub, run) -> None:
                      choices=("png", "pdf", "svg"),
                      help="also write the figure in this format (repeatable); PNG is always "
                           "written")
+    cmp.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP)
 
 
 def _results_command(args):

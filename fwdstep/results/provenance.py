@@ -7,7 +7,8 @@ sweep records, in ``summary.json`` / ``sweep.json`` under ``"provenance"``:
 * ``command``: the command line, ``sets``: every ``--set`` as typed (block paths included),
   ``overrides``: the same as values (from the Python API too);
 * ``backend`` used and ``simulation``: every solver setting as run;
-* ``plugins``: each plugin file loaded, with the SHA-256 of what was imported;
+* ``plugins``: each plugin file that defines a block type of the diagram, with the
+  SHA-256 of what was imported;
 * ``files``: a COPY of the diagram and of every file it read (subsystems, URDFs), in the
   output directory under ``diagram/`` (listed in its manifest), each with its original
   path and SHA-256; ``includes``: which name in which file stands for which copy.
@@ -45,9 +46,12 @@ def environment() -> dict:
     return out
 
 
-def plugins_loaded() -> list:
+def plugins_used(spec) -> list:
+    """The plugin files that define a block type of ``spec``, with the SHA-256 of what was
+    imported (other plugins loaded in the process took no part in the run)."""
     from fwdstep.structure.library import plugin_files
-    return [{"file": path, "sha256": digest} for path, digest in plugin_files()]
+    modules = {entry.cls.__module__ for entry in spec.blocks}
+    return [{"file": path, "sha256": digest} for path, digest in plugin_files(modules)]
 
 
 def _layout(spec) -> dict:
@@ -137,7 +141,7 @@ def record_spec(spec, copies: dict | None, extra: dict | None = None,
     out["backend"] = backend or spec.simulation.backend
     out["simulation"] = _jsonable({k: v for k, v in dataclasses.asdict(spec.simulation).items()
                                    if k not in ("defaulted", "given")})
-    out["plugins"] = plugins_loaded()
+    out["plugins"] = plugins_used(spec)
     if copies:
         out["files"] = copies["files"]
         out["includes"] = copies["includes"]

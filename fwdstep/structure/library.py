@@ -127,10 +127,12 @@ def _load_file(path: str):
     return module
 
 
-def plugin_files() -> list:
-    """(absolute path, SHA-256 of the file as imported) of every plugin file loaded in this
-    process, in load order (recorded by every run: ``fwdstep.results.provenance``)."""
-    return [(path, module.__fwdstep_sha256__) for path, module in _plugin_files.items()]
+def plugin_files(modules=None) -> list:
+    """(absolute path, SHA-256 of the file as imported) of the plugin files loaded in this
+    process whose module is one of ``modules`` (all when None), in load order (recorded by
+    every run: ``fwdstep.results.provenance``)."""
+    return [(path, module.__fwdstep_sha256__) for path, module in _plugin_files.items()
+            if modules is None or module.__name__ in modules]
 
 
 def file_sha256(path: str) -> str:

@@ -166,3 +166,35 @@ def test_a_broken_installed_plugin_is_reported_once_and_not_blamed_on_the_diagra
         "list; block types of your own are added with --plugin FILE.py "
         "(docs/writing-blocks.md); the installed block plugin 'broken' (ImportError: "
         "libfoo.so missing) failed to load\n")
+
+
+def test_every_verb_takes_plugin_and_a_plugin_runs_report_draws_it(diagram, tmp_path):
+    """issue 24: graph, report, compare, sweep, validate and rerun take --plugin; report of
+    a plugin run draws its diagram in a new process without --plugin (the record names the
+    plugin file); without the plugin, the unknown type says where blocks come from."""
+    env = {**os.environ, "PYTHONPATH": ROOT, "MPLBACKEND": "Agg"}
+    env.pop("FWDSTEP_PLUGINS", None)         # set by the in-process tests above
+
+    def fwd(*args):
+        return subprocess.run([sys.executable, CLI, *args], capture_output=True, text=True,
+                              env=env, cwd=tmp_path, timeout=180)
+
+    missing = fwd("validate", diagram)
+    assert missing.returncode == 2 and "--plugin FILE.py" in missing.stderr
+    assert fwd("validate", diagram, "--plugin", PLUGIN).returncode == 0
+    graph = fwd("graph", diagram, "--plugin", PLUGIN, "-o", "g.svg", "--engine", "matplotlib")
+    assert graph.returncode == 0, graph.stderr
+    for out in ("a", "b"):
+        run = fwd("run", diagram, "--plugin", PLUGIN, "-o", out, "-q", "--no-plots")
+        assert run.returncode == 0, run.stderr
+    report = fwd("report", "a")
+    assert report.returncode == 0, report.stderr
+    page = (tmp_path / "a" / "report.html").read_text()
+    assert "image/svg+xml" in page and "no picture" not in page
+    assert fwd("report", "b", "--plugin", PLUGIN).returncode == 0
+    compare = fwd("compare", "a", "b", "--plugin", PLUGIN, "-o", "cmp")
+    assert compare.returncode == 0, compare.stderr
+    sweep = fwd("sweep", diagram, "--plugin", PLUGIN, "--grid", "r2=1,2", "-o", "sw", "-q",
+                "--workers", "1")
+    assert sweep.returncode == 0, sweep.stderr
+    assert fwd("rerun", "a", "-o", "c", "--plugin", PLUGIN, "-q").returncode == 0

@@ -149,6 +149,7 @@ def test_rerun_refuses_in_one_line_when_a_plugin_changed(tmp_path):
                        "connections: [inflow.y -> pop.u]\n"
                        "simulation: {t_final: 1, step: 0.01}\n")
     env = {**os.environ, "PYTHONPATH": ROOT, "MPLBACKEND": "Agg"}
+    env.pop("FWDSTEP_PLUGINS", None)
 
     def fwd(*args):
         return subprocess.run([sys.executable, CLI, *args], capture_output=True, text=True,
