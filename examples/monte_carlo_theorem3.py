@@ -79,7 +79,7 @@ def main(argv=None) -> int:
         print("interrupted: run again with --resume")
         return 130
     ok = [v for v in result.variants if v.status == "ok"]
-    err = np.array([v.metrics["tail_max_abs_error"] for v in ok])
+    err = np.array([v.metrics["tail_error_norm_max"] for v in ok])
     freq = np.array([v.values["dist.frequency"] for v in ok])
     mass = np.array([v.values["arm.me"] for v in ok])
     worst = [ok[k].index for k in np.argsort(err)[::-1][:5]]
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
         v = result.variants[i]
         print(f"  variant {i}: w = {v.values['dist.frequency']:.3f} rad/s, "
               f"m_e = {v.values['arm.me']:.3f} kg, phases = "
-              f"{np.round(v.values['dist.phase'], 3).tolist()}: {v.metrics['tail_max_abs_error']:.3g}")
+              f"{np.round(v.values['dist.phase'], 3).tolist()}: {v.metrics['tail_error_norm_max']:.3g}")
     traces = {}
     for part in result.iter_parts():
         for k, i in enumerate(part["indices"].tolist()):

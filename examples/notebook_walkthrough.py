@@ -42,14 +42,14 @@ assert np.array_equal(back["e.y"], r["e.y"]) and back.metrics() == r.metrics()
 specs = [load_spec(DIAGRAM, {"t_final": 6, "alpha": a}) for a in (3, 4, 6)]
 batch = fwdstep.simulate(fwdstep.compile_batch(specs))
 for a, m in zip((3, 4, 6), batch.metrics()):
-    print(f"alpha = {a}: final |e| = {m['final_abs_error']:.2e}")
+    print(f"alpha = {a}: final |e| = {m['final_error_norm']:.2e}")
 batch.save(os.path.join(OUT, "alpha_sweep"))
 batch.plot("e.y").savefig(os.path.join(OUT, "sweep_error.png"))   # |e| of every variant
 
 # --- compare: saved runs or batch variants (DIR@k), differences against the first
 c = fwdstep.compare([os.path.join(OUT, "alpha4"), os.path.join(OUT, "alpha_sweep@2")])
 for row in c.table:
-    print(row["run"], row["final_abs_error"], row["max |diff e.y|"])
+    print(row["run"], row["final_error_norm"], row["max |diff e.y|"])
 c.save(os.path.join(OUT, "compare"))
 
 # --- a saved sweep (fwdstep sweep -o DIR does the same): its variants compare as runs, SWEEP@k

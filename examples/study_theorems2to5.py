@@ -94,7 +94,7 @@ def run_batch(name: str, variants: list, common: dict, refine: int = 2):
     norms = np.linalg.norm(e, axis=-1)
     errs, steps = [], []
     for k, m in enumerate(metrics):
-        err, step = m.get("tail_max_abs_error", np.nan), common["step"]
+        err, step = m.get("tail_error_norm_max", np.nan), common["step"]
         if diverged[k] or not np.isfinite(err):
             err, step = np.nan, np.nan
             if refine:

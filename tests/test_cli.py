@@ -64,9 +64,9 @@ def test_summary_json_has_parameters_solver_step_wall_time_metrics(theorem1_run)
     assert summary["simulation"]["step"] == 0.002
     assert summary["wall_time_s"] > 0
     metrics = summary["metrics"]
-    assert set(metrics) >= {"final_abs_error", "tail_max_abs_error", "rms_error"}
-    assert metrics["final_abs_error"] < 1e-4
-    assert metrics["tail_max_abs_error"] >= metrics["final_abs_error"]
+    assert set(metrics) >= {"final_error_norm", "tail_error_norm_max", "rms_error_norm"}
+    assert metrics["final_error_norm"] < 1e-4
+    assert metrics["tail_error_norm_max"] >= metrics["final_error_norm"]
 
 
 def test_run_refuses_to_overwrite_without_force(theorem1_run, capsys):

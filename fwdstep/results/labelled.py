@@ -3,7 +3,7 @@
 A sweep becomes one ``xarray.Dataset``::
 
     error(variant, time, component)      the diagram's error signal (metrics: error:)
-    status(variant), diverged_at(variant), final_abs_error(variant), ...
+    status(variant), diverged_at(variant), final_error_norm(variant), ...
     coordinates: variant, time, component, and every swept parameter along 'variant'
     attributes: diagram, swept parameter names, simulation settings (JSON)
 
@@ -101,16 +101,54 @@ def _component_dims(name: str, shape: tuple) -> tuple:
     return tuple(f"{name}:{k}" for k in range(len(shape)))
 
 
+def _stem(components) -> str | None:
+    """The word every component name shares ('joint' of 'joint 1', 'joint 2'), or None."""
+    stems = {str(c).rstrip("0123456789").rstrip(" _-") for c in components}
+    if len(stems) == 1:
+        stem = stems.pop()
+        return stem if stem and stem not in ("time", "variant") else None
+    return None
+
+
+def signal_axes(result, name: str, shape: tuple) -> list:
+    """(dimension, coordinate values) of each component axis of signal ``name``: a vector
+    whose components the diagram or block names gets the word they share as its dimension
+    ('joint', with 'joint 1', 'joint 2' as coordinates; 'e.y:component' when they share
+    none); other axes are 'SIGNAL:0', 'SIGNAL:1', ... with integer coordinates."""
+    from fwdstep.results.plotting import signal_info
+    info = signal_info(result, name, typeset=False)
+    comps = tuple(info.components or ())
+    if len(shape) == 1 and comps and len(comps) == shape[0]:
+        return [(_stem(comps) or f"{name}:component", np.array(comps, dtype=str))]
+    return [(dim, np.arange(n, dtype=np.int32))
+            for dim, n in zip(_component_dims(name, shape), shape)]
+
+
 def result_dataset(result):
     """A ``Result`` as a Dataset: one variable per signal, dims (time, [variant,] its own
-    component axes ``'SIGNAL:0'``, ...); attrs: status, message, diagram, settings."""
+    component axes (``signal_axes``: 'joint' where the diagram names the components 'joint
+    1', 'joint 2', else 'SIGNAL:0', ...), each with coordinates; each variable's attrs give
+    its ``long_name`` (label) and ``units``; the Dataset's attrs: status, message, diagram,
+    settings."""
+    from fwdstep.results.plotting import signal_info
     xr = _xarray()
     data = {}
+    coords = {"time": ("time", np.asarray(result.t), {"units": "s"})}
     for name in result.names:
         arr = np.asarray(result[name])
         lead = ("time",) if result.batch == 1 else ("time", "variant")
-        data[name] = (lead + _component_dims(name, arr.shape[len(lead):]), arr)
-    coords = {"time": result.t}
+        dims = []
+        for dim, values in signal_axes(result, name, arr.shape[len(lead):]):
+            have = coords.get(dim)
+            if have is not None and not np.array_equal(have[1], values):
+                dim = f"{name}:{dim}"              # same word, other components
+            coords.setdefault(dim, (dim, values))
+            dims.append(dim)
+        info = signal_info(result, name, typeset=False)
+        attrs = {"long_name": info.label}
+        if info.unit:
+            attrs["units"] = info.unit
+        data[name] = (lead + tuple(dims), arr, attrs)
     if result.batch > 1:
         coords["variant"] = np.arange(result.batch, dtype=np.int32)
     ds = xr.Dataset(data, coords=coords)

@@ -39,6 +39,18 @@ class Result:
         #: size, P), "parameters": [(text, first column, end column, shape)]}, else None
         self.sensitivity_data = None
 
+    def __repr__(self) -> str:
+        """One line: status (and why), time range, samples, signals with their shapes."""
+        status = self.status + (f" ({self.message[:80]}{'…' if len(self.message) > 80 else ''})"
+                                if self.message else "")
+        span = (f"t = {self.t[0]:g} .. {self.t[-1]:g} s, {len(self.t)} samples"
+                if len(self.t) else "nothing recorded")
+        batch = f", {self.batch} variants" if self.batch > 1 else ""
+        shown = [f"{k} {_shape_text(v.shape[2:])}" for k, v in list(self._signals.items())[:8]]
+        more = len(self._signals) - len(shown)
+        signals = ", ".join(shown) + (f", … ({more} more)" if more > 0 else "")
+        return f"<Result {status}: {span}{batch}; signals: {signals or '(none)'}>"
+
     @property
     def names(self) -> list:
         return list(self._signals)
@@ -262,6 +274,11 @@ class Result:
         return result_frame(self)
 
 
+def _shape_text(shape: tuple) -> str:
+    return "scalar" if not shape else "(" + ", ".join(map(str, shape)) + \
+        ("," if len(shape) == 1 else "") + ")"
+
+
 def load_result(outdir: str) -> Result:
     """A Result saved by ``fwdstep run`` (``result.npz`` + ``summary.json`` in ``outdir``).
 
@@ -322,11 +339,6 @@ METRIC_DEFINITIONS = {
     "tail_error_max_abs_by_component": "per component i: max over the tail of |e_i(t)|",
     "rms_error_norm": "sqrt(mean over logged t of |e(t)|_2^2)",
     "error_norm_max": "max over all logged t of |e(t)|_2",
-    # the names before issue 15, kept for old scripts: all four are Euclidean norms
-    "final_abs_error": "= final_error_norm (old name)",
-    "tail_max_abs_error": "= tail_error_norm_max (old name)",
-    "rms_error": "= rms_error_norm (old name)",
-    "max_abs_error": "= error_norm_max (old name)",
 }
 
 
@@ -369,9 +381,6 @@ def batch_error_metrics(t: np.ndarray, e: np.ndarray, tail: float = 0.2) -> list
         m["tail_error_max_abs_by_component"] = components[b]
         m["rms_error_norm"] = columns["rms_error_norm"][b]
         m["error_norm_max"] = columns["error_norm_max"][b]
-        m.update(final_abs_error=m["final_error_norm"], tail_max_abs_error=m[
-            "tail_error_norm_max"], rms_error=m["rms_error_norm"],
-            max_abs_error=m["error_norm_max"])
         out.append(m)
     return out
 

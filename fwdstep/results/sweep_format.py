@@ -20,7 +20,7 @@ RECORD_FILE = "sweep.json"
 #: finished batches, one file each, kept for ``--resume``
 PARTS_DIR = "parts"
 #: the error metrics of a sweep's rows, in column order
-METRICS = ("final_abs_error", "tail_max_abs_error", "rms_error", "max_abs_error")
+METRICS = ("final_error_norm", "tail_error_norm_max", "rms_error_norm", "error_norm_max")
 
 
 def cell_text(value) -> str:

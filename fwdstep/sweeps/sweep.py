@@ -718,7 +718,7 @@ def sweep_figure(result: SweepResult):
             sel = [k for k, v in enumerate(ok) if _describe(v.values, others) == key]
             order = np.argsort(x[sel], kind="stable")
             color = None
-            for metric, style in (("tail_max_abs_error", "-"), ("final_abs_error", ":")):
+            for metric, style in (("tail_error_norm_max", "-"), ("final_error_norm", ":")):
                 y = np.array([ok[k].metrics[metric] for k in sel])
                 line, = ax.plot(x[sel][order], y[order], style if len(series) <= 10 else "",
                                 marker=marker, ms=4 if len(series) <= 10 else 2, lw=1,

@@ -61,13 +61,33 @@ class Run:
         return m or {}
 
 
-@dataclass
+class Table(list):
+    """The metrics table: a list of rows (dict column -> value), one per run, that also
+    turns into a pandas DataFrame (``to_pandas``) indexed by run label."""
+
+    def to_pandas(self):
+        import pandas as pd
+        frame = pd.DataFrame(list(self))
+        return frame.set_index("run") if "run" in frame.columns else frame
+
+
+@dataclass(repr=False)
 class Comparison:
     runs: list
     signals: list
     differences: dict            # signal -> list (one per run after the first) of (T, ...) arrays
-    table: list                  # rows: dict column -> value
+    table: list                  # rows: dict column -> value (a ``Table``: ``.to_pandas()``)
     figure: object
+
+    def __post_init__(self):
+        if not isinstance(self.table, Table):
+            self.table = Table(self.table)
+
+    def __repr__(self) -> str:
+        labels = ", ".join(r.label for r in self.runs)
+        return (f"<Comparison of {len(self.runs)} runs ({labels}); signals: "
+                f"{', '.join(self.signals)}; .table ({len(self.table)} rows, .to_pandas()), "
+                ".differences, .figure>")
 
     def save(self, outdir: str, formats=("png",), force: bool = True) -> list:
         """Write compare.csv and compare.<fmt> into ``outdir`` through fwdstep.results.outputs."""

@@ -142,7 +142,7 @@ metrics: {error: f.y}
                     sorted(alone.variants, key=lambda v: v.index)):
         assert a.values == b.values
         assert a.metrics == pytest.approx(b.metrics, rel=1e-12)
-        finals[a.index] = a.metrics["final_abs_error"]
+        finals[a.index] = a.metrics["final_error_norm"]
     assert len({round(v, 12) for v in finals.values()}) == 3   # three different signals
 
 
@@ -222,4 +222,4 @@ metrics: {error: f.y}
     for a, b in zip(sorted(batched.variants, key=lambda v: v.index),
                     sorted(alone.variants, key=lambda v: v.index)):
         assert a.values == b.values
-        assert a.metrics["final_abs_error"] == b.metrics["final_abs_error"]
+        assert a.metrics["final_error_norm"] == b.metrics["final_error_norm"]

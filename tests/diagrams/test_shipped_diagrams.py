@@ -53,4 +53,4 @@ def test_shipped_diagram_runs_briefly(path):
         assert np.all(np.isfinite(r[name])), f"{name} is not finite"
     if "error" in spec.metrics:
         m = r.metrics()
-        assert np.isfinite(m["final_abs_error"])
+        assert np.isfinite(m["final_error_norm"])

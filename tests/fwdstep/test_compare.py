@@ -49,7 +49,7 @@ def test_difference_matches_the_analytic_solutions(tmp_path):
     row_b = c.table[1]
     assert row_b["run"] == "b" and row_b["status"] == "ok"
     assert row_b["max |diff x.y|"] == pytest.approx(np.max(np.abs(exact)), rel=1e-6)
-    assert row_b["final_abs_error"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4), rel=1e-6)
+    assert row_b["final_error_norm"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4), rel=1e-6)
     # the figure: overlay then difference, named by the labels of the diagram
     over, diff = c.figure.axes[:2]
     assert over.get_ylabel() == "$x$ [m]" and diff.get_ylabel() == "Δ $x$ [m]"
@@ -132,7 +132,7 @@ def test_a_loaded_result_plots_like_the_fresh_one(tmp_path):
     assert [t.get_text() for t in b.axes[0].get_legend().get_texts()] == ["first", "second"]
     assert np.array_equal(b.axes[0].lines[1].get_ydata(), fresh["x.y"][:, 1])
     page = back._repr_html_()
-    assert "<table>" in page and "ok" in page and f"{fresh.metrics()['final_abs_error']:.3e}" in page
+    assert "<table>" in page and "ok" in page and f"{fresh.metrics()['final_error_norm']:.3e}" in page
 
 
 def test_sweep_variants_compare_by_their_real_names_and_equal_a_run(tmp_path, capsys,
@@ -165,7 +165,7 @@ def test_sweep_variants_compare_by_their_real_names_and_equal_a_run(tmp_path, ca
     assert over.get_ylabel() == "$x$ [m]"
     assert [t_.get_text() for t_ in diff.get_legend().get_texts()][:2] == [
         "sweep@1 (g=-2) − sweep@0 (g=-1), first", "sweep@1 (g=-2) − sweep@0 (g=-1), second"]
-    assert c.table[1]["final_abs_error"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4),
+    assert c.table[1]["final_error_norm"] == pytest.approx(np.linalg.norm(X0) * np.exp(-4),
                                                           rel=1e-6)
     # the whole sweep directory: every variant; a variant that is not there: one line, exit 2
     assert [r.label for r in compare([str(sweep)]).runs] == ["sweep@0 (g=-1)", "sweep@1 (g=-2)"]

@@ -228,4 +228,4 @@ def test_sigterm_keeps_finished_batches_and_resume_finishes(path, tmp_path):
         again = list(csv.DictReader(fh))
     assert [r["status"] for r in again] == ["ok"] * 10
     for r in done:                        # the finished variants were kept, not re-run
-        assert again[int(r["variant"])]["final_abs_error"] == r["final_abs_error"]
+        assert again[int(r["variant"])]["final_error_norm"] == r["final_error_norm"]

@@ -65,8 +65,8 @@ def test_sweep_dataset_equals_each_variants_own_run(path, tmp_path):
         alone = _alone(path, v.values)
         got = ds["error"].sel(variant=v.index).sel(time=alone.t)
         np.testing.assert_allclose(got.values, alone["e.y"], rtol=0, atol=1e-12)
-        assert float(ds["final_abs_error"].sel(variant=v.index)) == pytest.approx(
-            alone.metrics()["final_abs_error"], rel=1e-12)
+        assert float(ds["final_error_norm"].sel(variant=v.index)) == pytest.approx(
+            alone.metrics()["final_error_norm"], rel=1e-12)
         # the times this variant did not sample are missing, not zero
         others = np.setdiff1d(ds["time"].values, alone.t)
         assert np.isnan(ds["error"].sel(variant=v.index).sel(time=others).values).all()

@@ -88,7 +88,7 @@ def test_non_finite_state_cli(tmp_path, capsys):
     assert arrays["t"].shape == (47,) and arrays["int.y"].shape == (47, 2)
     assert np.all(np.isfinite(arrays["int.y"]))
     # the metrics of a diverged run are finite numbers, not an overflow
-    assert summary["metrics"]["final_abs_error"] == pytest.approx(
+    assert summary["metrics"]["final_error_norm"] == pytest.approx(
         np.hypot(*arrays["int.y"][-1]), rel=1e-12)
 
 
@@ -460,7 +460,7 @@ def test_a_sweep_marks_only_the_variant_whose_unrecorded_output_overflows(tmp_pa
         alone = error_metrics(r.t, r["tracked.y"], 0.2)
         assert v.metrics == {m: alone[m] for m in v.metrics} and len(v.metrics) == 4
         # |tracked.y(1)| = |g (1, 2)| = sqrt(5) g
-        assert alone["final_abs_error"] == pytest.approx(5 ** 0.5 * v.values["g"], rel=1e-12)
+        assert alone["final_error_norm"] == pytest.approx(5 ** 0.5 * v.values["g"], rel=1e-12)
     with pytest.raises(DivergenceError) as info:                     # its row says why
         fwdstep.simulate(fwdstep.load_diagram(path, {"g": 1.0e200}))
     assert res.variants[1].message == str(info.value)

@@ -212,7 +212,7 @@ metrics: {error: s.y}
 """)
     r = fwdstep.simulate(fwdstep.load_diagram(top))
     np.testing.assert_allclose(r["s.y"][:, 0], 1.0 + 2.0 * r.t, atol=1e-12)
-    assert r.metrics()["final_abs_error"] == pytest.approx(3.0)
+    assert r.metrics()["final_error_norm"] == pytest.approx(3.0)
 
 
 def test_connection_inside_subsystem_to_undeclared_port_is_hidden(tmp_path):

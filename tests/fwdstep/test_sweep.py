@@ -94,7 +94,7 @@ def test_cli_writes_table_and_figure(path, tmp_path, capsys):
     assert [(r["alpha"], r["K"]) for r in rows] == [("2", "20"), ("2", "-300"), ("4", "20"),
                                                     ("4", "-300")]
     assert [r["status"] for r in rows] == ["ok", "diverged", "ok", "diverged"]
-    assert float(rows[0]["tail_max_abs_error"]) > 0 and rows[1]["tail_max_abs_error"] == ""
+    assert float(rows[0]["tail_error_norm_max"]) > 0 and rows[1]["tail_error_norm_max"] == ""
     assert float(rows[1]["diverged_at"]) > 0
     assert os.path.getsize(out / "sweep.png") > 10_000
     # an existing table is not overwritten without --force
@@ -301,7 +301,7 @@ def test_the_reported_examples(capsys, tmp_path):
                      str(out), "-q", "--no-signals", "--set", "step=0.004"]) == 0
     with open(out / "sweep.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert rows[0]["final_abs_error"] != rows[1]["final_abs_error"]
+    assert rows[0]["final_error_norm"] != rows[1]["final_error_norm"]
     out = tmp_path / "b"
     assert cli.main(["sweep", "diagrams/theorem1.yaml", "--grid", "step=0.002,0.05", "-o",
                      str(out), "-q", "--set", "t_final=0.5"]) == 3
