@@ -7,6 +7,8 @@ Python API::
     r = fwdstep.simulate(d)
     r.t, r["err.y"], r.metrics()
 
+    b = fwdstep.Diagram("built in Python")     # or build one: .add, .connect, ... .load()
+
 The names below are imported on first use, so ``import fwdstep`` (and every command-line
 verb) pays only for the layers it touches; docs/architecture.md shows the layers.
 """
@@ -19,6 +21,7 @@ _PUBLIC = {
     "load_diagram": "fwdstep.structure.compiler",
     "compile_batch": "fwdstep.structure.compiler",
     "CompiledDiagram": "fwdstep.structure.compiler",
+    "Diagram": "fwdstep.structure.builder",
     "simulate": "fwdstep.run.simulate",
     "SimulationInterrupted": "fwdstep.run.outcome",
     "Result": "fwdstep.results.result",

@@ -96,10 +96,14 @@ def copy_sources(spec, outdir: str) -> dict:
     ``files``, ``includes`` and ``diagram`` (the copy of the top-level file)."""
     layout = _layout(spec)
     files = []
+    given = {os.path.abspath(s.path): s.text for s in spec.sources if s.text is not None}
     for path, copy in layout.items():
         try:
-            with open(path, "rb") as fh:
-                data = fh.read()
+            if path in given:                  # built in Python: the text that was loaded
+                data = given[path].encode("utf-8")
+            else:
+                with open(path, "rb") as fh:
+                    data = fh.read()
         except OSError as exc:
             raise OutputError(f"cannot copy {printable(path)} into the output directory: "
                               f"{exc.strerror}") from None

@@ -40,11 +40,13 @@ class SourceFile:
     """A file the loader read: the top-level diagram (``kind`` "diagram"), a subsystem
     ("subsystem") or a block's data file ("file", a ``Param("file")`` such as a URDF).
     ``named``: the name as written, by ``by`` (the including file; "" for the command line,
-    None for the top-level diagram)."""
+    None for the top-level diagram); ``text``: the diagram's text when it was given as text
+    (``fwdstep.Diagram().load()``) rather than read from ``path``."""
     path: str
     kind: str
     named: str | None = None
     by: str | None = None
+    text: str | None = None          # a diagram given as text (``fwdstep.Diagram``), no file
 
 
 @dataclass

@@ -661,7 +661,11 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
                 cache[key] = _read_document(path)
             return copy.deepcopy(cache[key])
     check_regular_file(path)        # never open a FIFO, a device or stdin
-    doc = read_yaml_file(path)
+    return _check_document(read_yaml_file(path), path)
+
+
+def _check_document(doc, path: str) -> LineDict:
+    """A parsed diagram, checked as a whole: a mapping with diagram sections only."""
     if doc is None:
         raise YamlError("the file is empty; a diagram needs at least a 'blocks:' section",
                         file=path, line=1)
@@ -824,7 +828,8 @@ def split_overrides(overrides: dict, parameters) -> tuple:
 
 
 def load_spec(path: str, overrides: dict | None = None,
-              cache: dict | None = None, redirects: dict | None = None) -> DiagramSpec:
+              cache: dict | None = None, redirects: dict | None = None,
+              text: str | None = None) -> DiagramSpec:
     """Read, check and flatten a diagram file (and its subsystems).  ``cache``: see
     ``_read_document`` (parse each file once across many loads).
 
@@ -837,11 +842,15 @@ def load_spec(path: str, overrides: dict | None = None,
     ``redirects`` ``{(including file, name as written): file}`` makes ``file:`` and
     ``Param("file")`` names read other files: a run's recorded copy
     (``fwdstep.results.provenance``).  The spec keeps the overrides as given and every file
-    read (``spec.sources``), so a run can record what made it."""
+    read (``spec.sources``), so a run can record what made it.
+
+    ``text``: the diagram's YAML text, read instead of the file ``path`` (which then only
+    names it in messages and places it: its ``file:`` names are relative to its folder);
+    ``fwdstep.Diagram().load()`` passes what it built."""
     errors: list = []
     spec = None
     try:
-        spec = _load(os.path.normpath(path), overrides, cache, errors, redirects)
+        spec = _load(os.path.normpath(path), overrides, cache, errors, redirects, text)
     except DiagramError as exc:
         errors.append(exc)
     if errors:
@@ -853,9 +862,12 @@ def load_spec(path: str, overrides: dict | None = None,
 
 
 def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
-          redirects: dict | None = None) -> DiagramSpec:
+          redirects: dict | None = None, text: str | None = None) -> DiagramSpec:
     cache = {} if cache is None else cache     # a subsystem used many times is parsed once
-    doc = _read_document(path, cache)
+    if text is None:
+        doc = _read_document(path, cache)
+    else:
+        doc = _check_document(parse_yaml_text(text, file=path), path)
     given = dict(overrides or {})
     budget = Budget()
     overrides, sim_overrides, log_override, paths = split_overrides(
@@ -874,7 +886,7 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
     if log_override is not None:
         doc["log"] = log_override
     search = SearchPath(path, redirects)
-    search.read.append(SourceFile(os.path.abspath(path), "diagram"))
+    search.read.append(SourceFile(os.path.abspath(path), "diagram", text=text))
     total = count_blocks(path, doc, search, cache)
     if total > MAX_BLOCKS:
         raise ConfigError(f"the diagram would have {total} blocks after subsystem expansion; the "
