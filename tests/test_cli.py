@@ -166,3 +166,34 @@ def test_figure_format_writes_png_as_well(tmp_path):
     assert cli.main(["compare", str(out), str(out), "-o", str(cmp), "--figure-format", "svg"]) == 0
     assert (cmp / "compare.png").read_bytes()[:8] == PNG_MAGIC
     assert b"<svg" in (cmp / "compare.svg").read_bytes()[:3000]
+
+
+# ---------------------------------------------------------------------------- issue 24, item 9
+def test_progress_off_a_terminal_writes_quarters_and_reaches_100():
+    import io
+    from fwdstep.cli.commands import Progress
+    out = io.StringIO()
+    p = Progress(out)
+    for k in range(1, 15):                      # about once a second: every ~7 %
+        p(k / 15)
+    p.finish(1.0)
+    assert out.getvalue().splitlines() == ["   25.0% simulated", "   50.0% simulated",
+                                           "   75.0% simulated", "  100.0% simulated"]
+    quiet = io.StringIO()
+    Progress(quiet).finish(1.0)                 # a run shorter than a second: nothing
+    assert quiet.getvalue() == ""
+
+
+def test_compare_quiet_prints_nothing_and_schema_output_says_what_it_wrote(tmp_path, capsys):
+    for name in ("a", "b"):
+        assert cli.main(["run", THEOREM1, "--set", "simulation.t_final=0.1", "-o",
+                         str(tmp_path / name), "-q", "--no-plots"]) == 0
+    capsys.readouterr()
+    assert cli.main(["compare", str(tmp_path / "a"), str(tmp_path / "b"), "-o",
+                     str(tmp_path / "cmp"), "-q"]) == 0
+    assert capsys.readouterr().out == ""
+    assert os.path.isfile(tmp_path / "cmp" / "compare.csv")
+    target = tmp_path / "schema.json"
+    assert cli.main(["schema", "-o", str(target)]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"wrote {target} ") and json.loads(target.read_text())

@@ -254,6 +254,8 @@ def _add_results_commands(sub, run) -> None:
                           "written")
     cmp.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
                      help=_PLUGIN_HELP)
+    cmp.add_argument("-q", "--quiet", action="store_true",
+                     help="print nothing (the table is in compare.csv)")
 
 
 def _results_command(args):
@@ -282,7 +284,7 @@ def _results_command(args):
     if args.command == "compare":
         from fwdstep.cli.verbs import cmd_compare
         return cmd_compare(args.runs, args.outdir, args.signal,
-                           figure_formats(args.figure_format))
+                           figure_formats(args.figure_format), quiet=args.quiet)
     return None
 
 

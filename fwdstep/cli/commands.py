@@ -49,8 +49,42 @@ def run_files(d, plots: bool, formats=("png",)) -> list:
     return names
 
 
-def _progress(frac: float) -> None:
-    print(f"  {100 * frac:5.1f}% simulated", file=sys.stderr, flush=True)
+class Progress:
+    """How far a run is, on stderr.  The simulation reports about once a second; on a
+    terminal one line is rewritten in place, elsewhere (a log file, a pipe) a line is
+    written at each quarter only.  ``finish`` writes where the run ended (100 % when it
+    reached t_final) once anything was shown."""
+
+    QUARTERS = 4
+
+    def __init__(self, stream=None):
+        self.stream = stream or sys.stderr
+        try:
+            self.live = self.stream.isatty()
+        except (AttributeError, ValueError):
+            self.live = False
+        self.shown = -1                  # the last quarter written (not live)
+        self.started = False
+
+    def __call__(self, frac: float) -> None:
+        frac = min(max(float(frac), 0.0), 1.0)
+        if self.live:
+            print(f"\r  {100 * frac:5.1f}% simulated", end="", file=self.stream, flush=True)
+            self.started = True
+            return
+        quarter = int(frac * self.QUARTERS)
+        if 0 < quarter < self.QUARTERS and quarter > self.shown:
+            self.shown = quarter
+            self.started = True
+            print(f"  {100 * quarter / self.QUARTERS:5.1f}% simulated", file=self.stream,
+                  flush=True)
+
+    def finish(self, frac: float) -> None:
+        if not self.started:
+            return
+        frac = min(max(float(frac), 0.0), 1.0)
+        print(f"{chr(13) if self.live else ''}  {100 * frac:5.1f}% simulated",
+              file=self.stream, flush=True)
 
 
 def cmd_validate(path: str, sets=None) -> int:
@@ -131,6 +165,13 @@ def cmd_run(path: str, sets=None, outdir: str | None = None, force: bool = False
 _ARGUMENTS: list | None = None
 
 
+def _reached(result, d) -> float:
+    """The fraction of t_final a (possibly partial) result reached."""
+    if result is None or not len(result.t):
+        return 0.0
+    return float(result.t[-1]) / d.spec.simulation.t_final
+
+
 def _command_line() -> list:
     """The command as typed: 'fwdstep' and its arguments."""
     return ["fwdstep"] + list(sys.argv[1:] if _ARGUMENTS is None else _ARGUMENTS)
@@ -141,18 +182,24 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
     from fwdstep.run.simulate import simulate
     from fwdstep.core import signals
     code = EXIT_OK
-    progress = None if quiet else _progress
+    progress = None if quiet else Progress()
+    result = None
     try:
         result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
                           max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
     except SimulationError as exc:
         result = exc.result
+        if progress is not None:
+            progress.finish(_reached(result, d))
         _err(str(exc))
         code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
                 EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else
                 signals.exit_code(exc))
         if result is None:
             return code
+    else:
+        if progress is not None:
+            progress.finish(_reached(result, d))
     try:
         with signals.deferred():                  # a signal now: the results still land
             written = result.write_files(out.dir, record)

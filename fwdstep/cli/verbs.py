@@ -174,7 +174,7 @@ def cmd_graph(path: str, output: str | None = None, sets=None, depth: int | None
 
 # ---------------------------------------------------------------------------- compare
 def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=None,
-                force: bool = True) -> int:
+                force: bool = True, quiet: bool = False) -> int:
     """``fwdstep compare``: exit 0, or 2 with one line on stderr."""
     from fwdstep.core.errors import FwdstepError, one_line
     try:
@@ -184,6 +184,8 @@ def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=
     except FwdstepError as exc:
         print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return 2
+    if quiet:
+        return 0
     cols = list(c.table[0])
     widths = {col: max([len(col), 10] + [len(_fmt(row.get(col))) for row in c.table])
               for col in cols}
@@ -215,6 +217,7 @@ def cmd_schema(output: str | None = None) -> int:
     except OSError as exc:
         print(f"fwdstep: cannot write {output}: {exc.strerror}", file=sys.stderr)
         return 2
+    print(f"wrote {output} (JSON Schema of the diagram format, {len(text)} bytes)")
     return 0
 
 

@@ -13,6 +13,10 @@ each of its inputs (named ``ctrl/sample_<port>``) and one on each of its outputs
   zero-order-hold discretisation (scipy.signal.cont2discrete(..., method='zoh'));
 * the plant and everything outside are integrated continuously, with steps ending at
   every t_k (fwdstep.run.events).
+
+``sample_period: 0`` (also ``--set ctrl.sample_period=0``) runs the subsystem continuously,
+as if it had no sample period: the comparison of a digital controller with its analog
+design is one option away.
 """
 from __future__ import annotations
 
@@ -35,9 +39,11 @@ def sample_subsystem(level, name: str, body, file: str, line) -> None:
             if not isinstance(values[param], float):
                 raise ConfigError(f"subsystem '{full}' {key} must be a number of seconds, got "
                                   f"{body[key]!r}", file=file, line=_line(body, key))
+    if values.get("period") == 0.0:      # sample_period: 0 -- run it continuously
+        return
     if not values.get("period", 0.0) > 0:
-        raise ConfigError(f"subsystem '{full}' sample_period must be positive", file=file,
-                          line=_line(body, "sample_period"))
+        raise ConfigError(f"subsystem '{full}' sample_period must be positive, or 0 to run it "
+                          "continuously", file=file, line=_line(body, "sample_period"))
     level.sampled[full] = {"period": values["period"], "offset": values.get("offset", 0.0)}
     hold = lookup("ZeroOrderHold")
     entries = {b.name: b for b in level.blocks}

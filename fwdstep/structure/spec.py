@@ -460,6 +460,14 @@ class _Level:
         passed_items = [(key, value, _line(passed, key), f"subsystem '{self.full(name)}' "
                          f"parameter '{key}'") for key, value in passed.items()]
         child_sets = {}
+        timing = {rest[0]: value for rest, value in sets.items()
+                  if len(rest) == 1 and rest[0] in ("sample_period", "sample_offset")
+                  and rest[0] not in child_params}
+        if timing:                 # --set ctrl.sample_period=0: the body as if written so
+            original, body = body, LineDict(body)
+            body.line, body.key_lines = original.line, dict(getattr(original, "key_lines", {}))
+            body.update(timing)
+            sets = {rest: value for rest, value in sets.items() if rest[0] not in timing}
         for rest, value in sets.items():
             if len(rest) == 1 and rest[0] in child_params:
                 passed_items = [item for item in passed_items if item[0] != rest[0]]

@@ -12,6 +12,7 @@ from scipy.linalg import expm
 from scipy.signal import cont2discrete, dlsim
 
 import fwdstep
+from fwdstep.cli import arguments as cli
 
 PD = """
 parameters: {{T: 0.01}}
@@ -286,11 +287,28 @@ def test_sampled_subsystem_settings_are_checked(tmp_path):
                                                          "sample_period: -1")
     with pytest.raises(fwdstep.ConfigError) as err:
         _load(tmp_path, bad)
-    assert "subsystem 'ctrl' sample_period must be positive" in str(err.value)
+    assert "subsystem 'ctrl' sample_period must be positive, or 0" in str(err.value)
     bad = LOOP_SUB.format(h=0.001, t_final=0.1).replace("sample_period", "sample_perod")
     with pytest.raises(fwdstep.DiagramError) as err:
         _load(tmp_path, bad)
     assert "keys are: type, file, parameters, sample_period, sample_offset" in str(err.value)
+
+
+def test_sample_period_0_runs_the_subsystem_continuously(tmp_path):
+    """issue 24: ``--set ctrl.sample_period=0`` (or ``sample_period: 0``) compares the
+    digital controller with its analog design: no holds, the continuous closed loop."""
+    from scipy.linalg import expm
+    (tmp_path / "ctrl.yaml").write_text(PD_SUB)
+    text = LOOP_SUB.format(h=0.001, t_final=0.5)
+    d = _load(tmp_path, text, **{"ctrl.sample_period": 0})
+    assert not any(b.type_name == "ZeroOrderHold" for b in d.blocks)
+    r = fwdstep.simulate(d)
+    exact = np.array([expm((A + B @ K) * t) @ [1.0, 0.5] for t in r.t])
+    assert np.abs(r["plant.y"] - exact).max() < 1e-9                  # RK4 at h = 1 ms
+    unsampled = fwdstep.simulate(_load(tmp_path, text.replace(", sample_period: 0.01", "")))
+    assert np.array_equal(r["plant.y"], unsampled["plant.y"])
+    assert cli.main(["validate", str(tmp_path / "d.yaml"), "--set",
+                     "ctrl.sample_period=0"]) == 0
 
 
 REF_INIT = """
