@@ -173,6 +173,8 @@ class Result:
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
             **_figure_summary(self),
         }
+        if d is not None:        # e.g. K after --set Ks.gain=..., t_final after simulation.t_final
+            out["unused_parameters"] = list(d.spec.unused)
         if d is not None and self.batch == 1:
             out["blocks"] = {e.name: {"type": e.type_name,
                                       **{k: parameter_json(v) for k, v in e.params.items()}}

@@ -71,6 +71,7 @@ class DiagramSpec:
     #: with these plus the perturbed value: fwdstep.analysis.sensitivity)
     overrides: dict = field(default_factory=dict)
     sources: list = field(default_factory=list)       # every file read, as SourceFile
+    unused: list = field(default_factory=list)        # top-level parameters nothing reads
 
 
 def kind_of(value) -> str:

@@ -33,6 +33,7 @@ def sample_subsystem(level, name: str, body, file: str, line) -> None:
     for key, param in (("sample_period", "period"), ("sample_offset", "offset")):
         if key in body:
             try:
+                level.uses(body[key])
                 values[param] = evaluate_value(body[key], level.ns, f"subsystem '{full}' {key}")
             except DiagramError as exc:
                 raise exc.located(file, _line(body, key)) from None

@@ -211,6 +211,24 @@ def _blame_override(exc: DiagramError, name: str, uses: dict, overrides: dict, r
     return out
 
 
+def unused_parameters(raw, overrides: dict, used: set) -> list:
+    """The top-level parameters no value of the run reads, directly or through another
+    parameter: e.g. ``K`` after ``--set Ks.gain=80*eye(2)`` replaced the only use of it, or
+    ``t_final`` after ``--set simulation.t_final=2``.  Shown as such in the record."""
+    if not isinstance(raw, dict):
+        return []
+    values = {**raw, **(overrides or {})}
+    reached, todo = set(), [n for n in used if n in values]
+    while todo:
+        name = todo.pop()
+        if name in reached:
+            continue
+        reached.add(name)
+        for text in _strings_in(values[name]):
+            todo.extend(n for n in names_in(text) if n in values)
+    return [name for name in values if name not in reached]
+
+
 def _strings_in(value):
     if isinstance(value, str):
         yield value
@@ -286,6 +304,12 @@ class _Level:
         self.signal_info: dict = {}     # "sub/blk.port" -> {label, unit, components} declared below
         self.signal_lines: dict = {}    # "sub/blk.port" -> (file, line, as written) of those
         self.sampled: dict = {}         # sampled subsystem path -> {"period", "offset"}
+        self.used: set = set()          # names of this level's parameters its values read
+
+    def uses(self, value) -> None:
+        """Note the parameters an expression (or list of them) of this level reads."""
+        for text in _strings_in(value):
+            self.used |= names_in(text)
 
     def full(self, local: str) -> str:
         return f"{self.prefix}{local}"
@@ -420,6 +444,7 @@ class _Level:
                 params[key] = value
             else:
                 try:
+                    self.uses(value)
                     params[key] = (evaluate_ragged(value, self.ns, what) if decl.ragged else
                                    evaluate_value(value, self.ns, what))
                     if not (isinstance(value, str) and value.strip() in self.ns):
@@ -484,6 +509,7 @@ class _Level:
         overrides = {}
         for key, value, kline, what in passed_items:
             try:
+                self.uses(value)
                 overrides[key] = evaluate_value(value, self.ns, what)
             except DiagramError as exc:
                 raise exc.located(file, kline) from None
@@ -971,6 +997,12 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
     signal_info = declared
     check_figure_text(str(doc.get("description") or ""), "the description", path,
                       _line(doc, "description"))
+    used = set(level.used)
+    for section in ("simulation", "metrics"):
+        if isinstance(doc.get(section), dict):
+            for value in doc[section].values():
+                for text in _strings_in(value):
+                    used |= names_in(text)
     spec = DiagramSpec(file=path, description=str(doc.get("description") or ""), parameters=ns,
                        blocks=level.blocks, connections=level.connections, simulation=sim,
                        log=list(log) if log is not None else None, plots=plots, metrics=metrics,
@@ -978,6 +1010,8 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
                        input_ports=level.input_ports, signal_info=signal_info,
                        signal_lines=level.signal_lines, sampled=level.sampled,
                        overrides=given, sources=list(search.read))
+                       overrides=given, sources=list(search.read),
+                       unused=unused_parameters(doc.get("parameters"), overrides, used))
     if not errors:
         infer_shapes(spec)      # shape parameters the wiring fixes (fwdstep/structure/shapes.py)
     return spec

@@ -254,7 +254,8 @@ def settings_key(spec, memo: dict | None = None) -> tuple:
         shared = tuple(id(value) for name, value in rest if name != "simulation")
         if shared not in memo:
             memo[shared] = settings_key(dataclasses.replace(
-                spec, simulation=None, parameters={}, blocks=[], overrides={}, sources=[]))
+                spec, simulation=None, parameters={}, blocks=[], overrides={}, sources=[],
+                unused=[]))
         return memo[shared] + settings_key(spec.simulation)
     try:            # equal bytes: equal content (unequal bytes only split a batch further)
         return (pickle.dumps(rest, protocol=pickle.HIGHEST_PROTOCOL),)
@@ -264,7 +265,7 @@ def settings_key(spec, memo: dict | None = None) -> tuple:
 
 #: spec fields that never reach the numbers on their own: the parameters and overrides reach
 #: them only through the blocks, the files read are a record of where they came from
-_NOT_SETTINGS = ("parameters", "blocks", "overrides", "sources")
+_NOT_SETTINGS = ("parameters", "blocks", "overrides", "sources", "unused")
 
 
 @functools.lru_cache(maxsize=None)

@@ -33,7 +33,7 @@ from fwdstep.core.expressions import names_in
 from fwdstep.structure.graph import _instantiate_one
 from fwdstep.core.search import SearchPath
 from fwdstep.structure.spec import (Budget, LineDict, _Level, _line, _read_document, _simulation, _strings_in,
-                   load_spec, resolve_parameters, split_overrides)
+                   load_spec, resolve_parameters, split_overrides, unused_parameters)
 
 
 class VariantSpecs:
@@ -100,9 +100,12 @@ class VariantSpecs:
                 self.tail_names |= names_in(text)
         level = self._level(self.base.parameters)
         self.raw_keys = {}
+        self.block_uses = {}                      # block -> the parameters its values read
         for entry in self.base.blocks:
+            level.used = set()
             rebuilt = self._build(level, entry.name, self.base_paths)
             self.raw_keys[entry.name] = list(rebuilt.params)
+            self.block_uses[entry.name] = level.used
         self._fast = True
 
     def _level(self, namespace: dict) -> _Level:
@@ -173,11 +176,13 @@ class VariantSpecs:
         touched = {p[0] for p in vpaths}
         level = self._level(ns)
         entries, rebuilt = [], {}                 # rebuilt: position -> its value key
+        used = set()
         for k, entry in enumerate(base.blocks):
             if entry.name not in touched and not (self.block_names[entry.name] & affected):
                 kept = _shallow(entry)
                 kept.params = dict(entry.params)
                 entries.append(kept)
+                used |= self.block_uses[entry.name]
                 continue
             new = self._build(level, entry.name, paths)
             open_shapes = set(getattr(entry.cls, "shape_from", {}))
@@ -191,8 +196,16 @@ class VariantSpecs:
                 return None
             entries.append(new)
             rebuilt[k] = key
+        used |= level.used                         # what the rebuilt blocks read
+        for section, extra in (("simulation", {**self.base_sim, **vsim}), ("metrics", {})):
+            raw = self.doc.get(section)
+            for value in {**(raw if isinstance(raw, dict) else {}), **extra}.values():
+                for text in _strings_in(value):
+                    used |= names_in(text)
+        unused = unused_parameters(self.raw_params, {**self.base_params, **vparams}, used)
         return dataclasses.replace(base, parameters=ns, blocks=entries, simulation=sim,
-                                   overrides={**base.overrides, **values}), rebuilt
+                                   overrides={**base.overrides, **values},
+                                   unused=unused), rebuilt
 
     def _sim_doc(self, sim_overrides: dict):
         if not sim_overrides:

@@ -153,7 +153,16 @@ def _parameters_section(s: dict) -> list:
         out.append("<p>Overrides: " + html.escape(_value(prov["overrides"])) + "</p>")
     params = s.get("parameters")
     out.append("<h3>Diagram parameters</h3>")
-    out.append(_table(params) if isinstance(params, list) else _pairs(params or {}))
+    unused = set(s.get("unused_parameters") or [])
+    if isinstance(params, list):
+        out.append(_table(params))
+    elif unused:
+        out.append(_table([{"name": k, "value": v,
+                            "note": "not used in this run (its uses were replaced by --set)"
+                            if k in unused else ""} for k, v in (params or {}).items()],
+                          ["name", "value", "note"]))
+    else:
+        out.append(_pairs(params or {}))
     out.append("<h3>Simulation settings</h3>" + _pairs(s.get("simulation") or {}))
     blocks = s.get("blocks")
     if blocks:

@@ -56,6 +56,8 @@ def test_summary_records_the_parameters_as_evaluated_after_every_set(theorem1_ru
     assert s["simulation"]["t_final"] == 2                           # simulation.t_final
     assert s["parameters"]["ell"] == 2 and isinstance(s["parameters"]["ell"], int)
     assert s["parameters"]["b1"] == 0.2
+    # the diagram's K and t_final are what Ks.gain and simulation.t_final were: no longer read
+    assert s["unused_parameters"] == ["K", "t_final"]
     prov = s["provenance"]
     assert prov["sets"] == ["Ks.gain=80*eye(2)", "simulation.t_final=2"]
     assert prov["overrides"] == {"Ks.gain": "80*eye(2)", "simulation.t_final": 2}
@@ -121,6 +123,7 @@ def test_rerun_reads_the_copy_not_the_edited_file_and_report_draws_it(tmp_path, 
     assert cli.main(["report", "../moved"]) == 0
     page = (tmp_path / "moved" / "report.html").read_text()
     assert "no picture" not in page and "image/svg+xml" in page
+    assert "Set on the command line" in page and "tq.lam=9" in page
     from fwdstep.views.report import recorded_diagram
     d = recorded_diagram(_summary(tmp_path / "moved"), str(tmp_path / "moved"))
     assert any(b.name.startswith("tq/") for b in d.blocks)           # as run, not as edited
