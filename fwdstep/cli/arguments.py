@@ -78,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                                         "block registry), for editors")
     sch.add_argument("-o", "--output", default=None,
                      help="write the schema to this file instead of standard output")
+    sch.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help=_PLUGIN_HELP + "; their blocks are in the schema too")
 
     sw = sub.add_parser("sweep", help="run a diagram over a grid of parameter values")
     sw.add_argument("diagram")

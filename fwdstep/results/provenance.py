@@ -229,5 +229,38 @@ def check_plugins(prov: dict) -> list:
     return files
 
 
-__all__ = ["COPY_DIR", "copy_sources", "record", "read_record", "load_recorded",
+def recorded_diagram(summary: dict, run_dir: str | None):
+    """The compiled diagram of a saved run as it was run: the copy kept in ``run_dir``,
+    loaded with the recorded ``--set`` values and plugin files (report, animate), never
+    the working tree.  A run written before fwdstep kept copies: its stored path (relative
+    to the working directory or absolute) and parameters; FileNotFoundError when that file
+    is not there."""
+    from fwdstep.core.errors import FwdstepError
+    from fwdstep.structure.compiler import load_diagram
+    prov = summary.get("provenance")
+    if isinstance(prov, dict) and prov.get("diagram") and run_dir is not None:
+        top, overrides, redirects = load_recorded(run_dir, prov)
+        _load_recorded_plugins(prov)
+        return load_diagram(top, overrides, redirects=redirects)
+    path = summary.get("diagram")
+    if not path or not os.path.isfile(path):
+        raise FileNotFoundError(f"the diagram file {path} is not here; no picture")
+    params = summary.get("parameters")
+    try:
+        return load_diagram(path, params if isinstance(params, dict) else None)
+    except FwdstepError:
+        return load_diagram(path)
+
+
+def _load_recorded_plugins(prov: dict) -> None:
+    """Load the run's plugin files that are still there (drawing and replaying run none of
+    their numbers, so a changed file is used, not refused; rerun refuses it)."""
+    from fwdstep.structure.library import load_plugins
+    files = [e.get("file") for e in prov.get("plugins") or []
+             if isinstance(e.get("file"), str) and os.path.isfile(e["file"])]
+    if files:
+        load_plugins(files)
+
+
+__all__ = ["recorded_diagram", "COPY_DIR", "copy_sources", "record", "read_record", "load_recorded",
            "check_plugins", "environment"]

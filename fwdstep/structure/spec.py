@@ -1009,7 +1009,6 @@ def _load(path: str, overrides: dict | None, cache: dict | None, errors: list,
                        aliases=level.aliases, lines=lines, plot_scales=plot_scales,
                        input_ports=level.input_ports, signal_info=signal_info,
                        signal_lines=level.signal_lines, sampled=level.sampled,
-                       overrides=given, sources=list(search.read))
                        overrides=given, sources=list(search.read),
                        unused=unused_parameters(doc.get("parameters"), overrides, used))
     if not errors:

@@ -16,6 +16,10 @@ from fwdstep.structure.compiler import load_diagram
 def _load_run(outdir: str):
     """(Result, compiled diagram) of a saved run directory."""
     r = load_result(outdir)
+    prov = r.stored.get("provenance")
+    if isinstance(prov, dict) and prov.get("diagram"):    # the copy of the diagram as run
+        from fwdstep.results.provenance import recorded_diagram
+        return r, recorded_diagram(r.stored, outdir)
     path = _diagram_file(r.stored.get("diagram"), outdir)
     if path is None:
         raise OutputError(f"{outdir}: the run's diagram file {r.stored.get('diagram')} is not "

@@ -87,35 +87,9 @@ def _diagram_section(summary: dict, run_dir: str | None = None) -> list:
 
 
 def recorded_diagram(summary: dict, run_dir: str | None):
-    """The run's diagram as it was run: loaded from the copy kept in ``run_dir`` with the
-    recorded ``--set`` values (``fwdstep.results.provenance``), never from the working tree.
-    A run written before fwdstep kept copies: its stored path and parameters."""
-    from fwdstep.structure.compiler import load_diagram
-    from fwdstep.core.errors import FwdstepError
-    prov = summary.get("provenance")
-    if isinstance(prov, dict) and prov.get("diagram") and run_dir is not None:
-        from fwdstep.results.provenance import load_recorded
-        top, overrides, redirects = load_recorded(run_dir, prov)
-        _plugins_of(prov)
-        return load_diagram(top, overrides, redirects=redirects)
-    path = summary.get("diagram")
-    if not path or not os.path.isfile(path):
-        raise FileNotFoundError(f"the diagram file {path} is not here; no picture")
-    params = summary.get("parameters")
-    try:
-        return load_diagram(path, params if isinstance(params, dict) else None)
-    except FwdstepError:
-        return load_diagram(path)
-
-
-def _plugins_of(prov: dict) -> None:
-    """Load the run's plugin files that are still there (a picture needs their block types;
-    drawing runs none of their numbers, so a changed file is drawn, not refused)."""
-    from fwdstep.structure.library import load_plugins
-    files = [e.get("file") for e in prov.get("plugins") or []
-             if isinstance(e.get("file"), str) and os.path.isfile(e["file"])]
-    if files:
-        load_plugins(files)
+    """The run's diagram as it was run (``fwdstep.results.provenance.recorded_diagram``)."""
+    from fwdstep.results.provenance import recorded_diagram as recorded
+    return recorded(summary, run_dir)
 
 
 def diagram_picture(summary: dict, run_dir: str | None = None) -> tuple:
