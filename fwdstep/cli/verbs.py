@@ -184,6 +184,8 @@ def cmd_compare(sources: list, outdir: str | None = None, signals=None, formats=
     except FwdstepError as exc:
         print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return 2
+    for note in getattr(c, "notes", ()):
+        print(f"fwdstep: note: {one_line(note)}", file=sys.stderr)
     if quiet:
         return 0
     cols = list(c.table[0])

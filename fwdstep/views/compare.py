@@ -82,6 +82,7 @@ class Comparison:
     def __post_init__(self):
         if not isinstance(self.table, Table):
             self.table = Table(self.table)
+        self.notes: list = []        # e.g. the runs come from different diagrams
 
     def __repr__(self) -> str:
         labels = ", ".join(r.label for r in self.runs)
@@ -270,7 +271,48 @@ def compare(sources, signals=None, labels=None) -> Comparison:
     diffs = {s: [difference(runs[0], other, s) for other in runs[1:]] for s in signals}
     table = metrics_table(runs, diffs)
     figure = comparison_figure(runs, signals, diffs)
-    return Comparison(runs, signals, diffs, table, figure)
+    c = Comparison(runs, signals, diffs, table, figure)
+    c.notes = diagram_notes(runs)
+    return c
+
+
+def _diagram_of(run) -> tuple | None:
+    """(file name, SHA-256) of the diagram a run was made from, or None when unknown: a
+    Result in memory knows its loaded files, a saved run its record
+    (``fwdstep.results.provenance``)."""
+    import hashlib
+    r = run.result
+    d = getattr(r, "diagram", None)
+    if d is not None and d.spec.sources:
+        top = d.spec.sources[0]
+        try:
+            if top.text is not None:
+                data = top.text.encode("utf-8")
+            else:
+                with open(top.path, "rb") as fh:
+                    data = fh.read()
+        except OSError:
+            return None
+        return os.path.basename(top.path), hashlib.sha256(data).hexdigest()
+    prov = (getattr(r, "stored", None) or {}).get("provenance")
+    if isinstance(prov, dict) and prov.get("files"):
+        top = prov["files"][0]
+        return os.path.basename(str(prov.get("diagram_source") or top.get("copy"))), \
+            top.get("sha256")
+    return None
+
+
+def diagram_notes(runs: list) -> list:
+    """One line when the runs come from different diagrams (or different versions of one):
+    their differences then say more about the diagrams than about the runs."""
+    known = [(run.label, _diagram_of(run)) for run in runs]
+    known = [(label, who) for label, who in known if who is not None]
+    if len({who for _, who in known}) < 2:
+        return []
+    names = {who[0] for _, who in known}
+    what = "different versions of " + names.pop() if len(names) == 1 else "different diagrams"
+    return [f"the runs come from {what}: " + ", ".join(
+        f"{label} ({who[0]}, {who[1][:8]})" for label, who in known)]
 
 
 def unit_conversions(runs: list, signals: list) -> None:

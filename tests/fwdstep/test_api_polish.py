@@ -41,6 +41,22 @@ def test_comparison_repr_is_short_and_its_table_is_a_dataframe(result):
     assert frame.loc["a5", "final_error_norm"] == pytest.approx(
         np.linalg.norm(other["e.y"][-1]), rel=1e-12)
     assert c.table[0]["run"] == "a4"                     # still the list of rows it was
+    assert c.notes == []                                 # one diagram
+
+
+def test_comparing_runs_of_different_diagrams_says_so(result, tmp_path, capsys):
+    sine = os.path.join(ROOT, "diagrams", "theorem1_sine.yaml")
+    other = fwdstep.simulate(fwdstep.load_diagram(sine, {"simulation.t_final": 0.5}))
+    c = fwdstep.compare([result, other], labels=["t1", "sine"])
+    (note,) = c.notes
+    assert note.startswith("the runs come from different diagrams: t1 (theorem1.yaml, ")
+    result.save(str(tmp_path / "a"))
+    other.save(str(tmp_path / "b"))
+    assert cli.main(["compare", str(tmp_path / "a"), str(tmp_path / "b"), "-o",
+                     str(tmp_path / "c"), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("fwdstep: note: the runs come from different diagrams: a "
+                          "(theorem1.yaml, ") and err.count("\n") == 1
 
 
 def test_to_xarray_names_axes_from_the_components_with_coordinates_and_units(result):
