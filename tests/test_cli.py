@@ -169,7 +169,7 @@ def test_figure_format_writes_png_as_well(tmp_path):
 
 
 # ---------------------------------------------------------------------------- issue 24, item 9
-def test_progress_off_a_terminal_writes_quarters_and_reaches_100():
+def test_progress_off_a_terminal_writes_its_start_quarters_and_100():
     import io
     from fwdstep.cli.commands import Progress
     out = io.StringIO()
@@ -177,8 +177,9 @@ def test_progress_off_a_terminal_writes_quarters_and_reaches_100():
     for k in range(1, 15):                      # about once a second: every ~7 %
         p(k / 15)
     p.finish(1.0)
-    assert out.getvalue().splitlines() == ["   25.0% simulated", "   50.0% simulated",
-                                           "   75.0% simulated", "  100.0% simulated"]
+    assert out.getvalue().splitlines() == ["    6.7% simulated", "   25.0% simulated",
+                                           "   50.0% simulated", "   75.0% simulated",
+                                           "  100.0% simulated"]
     quiet = io.StringIO()
     Progress(quiet).finish(1.0)                 # a run shorter than a second: nothing
     assert quiet.getvalue() == ""

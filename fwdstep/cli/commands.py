@@ -52,8 +52,9 @@ def run_files(d, plots: bool, formats=("png",)) -> list:
 class Progress:
     """How far a run is, on stderr.  The simulation reports about once a second; on a
     terminal one line is rewritten in place, elsewhere (a log file, a pipe) a line is
-    written at each quarter only.  ``finish`` writes where the run ended (100 % when it
-    reached t_final) once anything was shown."""
+    written at the first report (the run is going) and at each quarter after it.
+    ``finish`` writes where the run ended (100 % when it reached t_final) once anything
+    was shown."""
 
     QUARTERS = 4
 
@@ -73,7 +74,10 @@ class Progress:
             self.started = True
             return
         quarter = int(frac * self.QUARTERS)
-        if 0 < quarter < self.QUARTERS and quarter > self.shown:
+        if not self.started:
+            self.started, self.shown = True, quarter
+            print(f"  {100 * frac:5.1f}% simulated", file=self.stream, flush=True)
+        elif 0 < quarter < self.QUARTERS and quarter > self.shown:
             self.shown = quarter
             self.started = True
             print(f"  {100 * quarter / self.QUARTERS:5.1f}% simulated", file=self.stream,
@@ -187,10 +191,10 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
     try:
         result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
                           max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
-    except SimulationError as exc:
+    except SimulationError as exc:        # its line says where it stopped
         result = exc.result
-        if progress is not None:
-            progress.finish(_reached(result, d))
+        if progress is not None and progress.live and progress.started:
+            print(file=sys.stderr)            # end the line the progress was rewriting
         _err(str(exc))
         code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
                 EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else

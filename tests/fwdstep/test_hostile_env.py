@@ -59,7 +59,8 @@ def test_manifest_lists_exactly_what_was_written_with_hashes(tmp_path):
     outdir = tmp_path / "out"
     assert cli.main(["run", write(tmp_path, DIAGRAM), "-o", str(outdir), "-q"]) == 0
     manifest = json.loads((outdir / MANIFEST_FILE).read_text())
-    assert set(manifest["files"]) == {"result.npz", "summary.json", "integral.png"}
+    assert set(manifest["files"]) == {"result.npz", "summary.json", "integral.png",
+                                      "diagram/d.yaml"}      # the copy of the diagram as run
     for name, info in manifest["files"].items():
         data = (outdir / name).read_bytes()
         assert info == {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
@@ -91,7 +92,7 @@ def test_two_processes_into_one_new_directory_exactly_one_wins(tmp_path):
     # refused while the winner runs (the lock) or, if it already finished, by its results
     assert ("is being written by another fwdstep run (pid" in results[1][1] or
             "result.npz already exists; pass --force" in results[1][1]), results[1][1]
-    assert listing(outdir) == ["manifest.json", "result.npz", "summary.json"]
+    assert listing(outdir) == ["diagram", "manifest.json", "result.npz", "summary.json"]
 
 
 def test_figure_never_replaces_a_file_fwdstep_did_not_write(tmp_path, capsys):
@@ -115,8 +116,8 @@ def test_force_replaces_its_own_figure_and_keeps_the_users_files(tmp_path, capsy
     (outdir / "notes.txt").write_text("mine")
     old_png = (outdir / "integral.png").stat().st_ino
     assert cli.main(["run", path, "-o", str(outdir), "-q", "--force"]) == 0
-    assert listing(outdir) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
-                               "summary.json"]
+    assert listing(outdir) == ["diagram", "integral.png", "manifest.json", "notes.txt",
+                               "result.npz", "summary.json"]
     assert (outdir / "notes.txt").read_text() == "mine"
     assert (outdir / "integral.png").stat().st_ino != old_png
     assert "notes.txt" not in json.loads((outdir / MANIFEST_FILE).read_text())["files"]
@@ -139,10 +140,10 @@ def test_force_does_not_write_through_a_planted_symlink(tmp_path, capsys):
 def test_a_listed_name_that_became_a_symlink_is_not_ours(tmp_path):
     outdir = tmp_path / "out"
     fwdstep.simulate(fwdstep.load_diagram(write(tmp_path, DIAGRAM))).save(str(outdir))
-    assert owned_files(str(outdir)) == {"result.npz", "summary.json"}
+    assert owned_files(str(outdir)) == {"result.npz", "summary.json", "diagram/d.yaml"}
     os.unlink(outdir / "summary.json")
     (outdir / "summary.json").symlink_to(tmp_path / "d.yaml")
-    assert owned_files(str(outdir)) == {"result.npz"}
+    assert owned_files(str(outdir)) == {"result.npz", "diagram/d.yaml"}
 
 
 def test_kill_between_the_renames_never_mixes_old_and_new(tmp_path, monkeypatch):
@@ -185,8 +186,8 @@ def test_the_current_directory_is_written_in_place_not_swapped_away(tmp_path, ca
     assert cli.main(["run", path, "-o", ".", "-q"]) == 0
     assert cli.main(["run", path, "-o", ".", "-q", "--force"]) == 0
     assert os.stat(".").st_ino == inode == work.stat().st_ino     # the same directory
-    assert listing(work) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
-                             "summary.json"]
+    assert listing(work) == ["diagram", "integral.png", "manifest.json", "notes.txt",
+                             "result.npz", "summary.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d.yaml", "work"]
 
 
@@ -203,8 +204,8 @@ def test_a_directory_whose_parent_is_not_writable_is_written_in_place(tmp_path, 
     for extra in ([], ["--force"]):
         assert cli.main(["run", path, "-o", str(outdir), "-q", *extra]) == 0
     assert listing(outdir.parent) == ["results"]              # nothing written beside it
-    assert listing(outdir) == ["integral.png", "manifest.json", "notes.txt", "result.npz",
-                               "summary.json"]
+    assert listing(outdir) == ["diagram", "integral.png", "manifest.json", "notes.txt",
+                               "result.npz", "summary.json"]
 
 
 # ------------------------------------------------------------------ signals
@@ -282,8 +283,8 @@ def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, 
     outdir = tmp_path / "out"
     real = result_module.Result.write_files
 
-    def write_then_signal(self, directory):
-        paths = real(self, directory)
+    def write_then_signal(self, directory, *args):
+        paths = real(self, directory, *args)
         os.kill(os.getpid(), signal.SIGTERM)     # arrives in the middle of the transaction
         return paths
 
@@ -292,7 +293,7 @@ def test_a_signal_while_writing_results_lets_the_write_finish(tmp_path, capsys, 
     assert code == 143
     assert capsys.readouterr().err == ("fwdstep: terminated (SIGTERM) while the results were "
                                        "written; they are complete\n")
-    assert listing(outdir) == ["manifest.json", "result.npz", "summary.json"]
+    assert listing(outdir) == ["diagram", "manifest.json", "result.npz", "summary.json"]
     assert json.loads((outdir / "summary.json").read_text())["status"] == "ok"
 
 
@@ -602,4 +603,4 @@ def test_a_failed_final_rename_keeps_the_results_and_says_where(tmp_path, capsys
                      r"space left on device; they are kept in (\S+)\n", err)
     assert m, err
     kept = Path(m.group(1))
-    assert listing(kept) == ["manifest.json", "result.npz", "summary.json"]
+    assert listing(kept) == ["diagram", "manifest.json", "result.npz", "summary.json"]
