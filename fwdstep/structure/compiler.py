@@ -73,7 +73,7 @@ class CompiledDiagram:
 
 
 #: parameter kinds whose values may select code paths rather than numbers (never stacked)
-STRUCTURAL_KINDS = ("str", "choice", "bool", "int", "names")
+STRUCTURAL_KINDS = ("str", "choice", "bool", "int", "names", "file")
 
 
 def structure_signature(blocks: list) -> tuple:
