@@ -152,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
                     metavar="NAME=LOW:HIGH", help="a parameter to tune and its bounds: "
                     "alpha=1:10, 'K[0,0]=10:200', Ks.gain=1:5 (repeatable)")
     tu.add_argument("--minimize", required=True, metavar="OBJECTIVE",
-                    help="a metric (rms_error, final_error_norm, ...) or FUNCTION(SIGNAL): "
+                    help="a metric (rms_error_norm, final_error_norm, ...) or FUNCTION(SIGNAL): "
                          "rms, mean_square, ise, max_abs, max_norm, final_norm, final_abs")
     tu.add_argument("--subject-to", action="append", default=[], metavar="CONSTRAINT",
                     help="'OBJECTIVE <= NUMBER' or '>=', e.g. \"max_abs(tau.y) <= 87\" "

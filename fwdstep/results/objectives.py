@@ -2,7 +2,7 @@
 constrains, and what ``Result.metric_gradient`` differentiates.
 
 An objective is written either as the name of one of the diagram's error metrics
-(``rms_error``, ``final_error_norm``, ... of ``fwdstep.results.result.METRIC_DEFINITIONS``,
+(``rms_error_norm``, ``final_error_norm``, ... of ``fwdstep.results.result.METRIC_DEFINITIONS``,
 computed from the signal named by ``metrics: error:``) or as ``FUNCTION(SIGNAL)`` of any
 logged signal (``max_abs(tau.y)``), FUNCTION one of OBJECTIVE_FUNCTIONS.  Every objective is
 a function of the logged samples y_k (k over the logged times, each flattened to n
@@ -31,19 +31,19 @@ OBJECTIVE_FUNCTIONS = {
 }
 #: the diagram's error metrics as (function, over the tail only)
 _NAMED = {
-    "final_error_norm": ("final_norm", False), "final_abs_error": ("final_norm", False),
+    "final_error_norm": ("final_norm", False),
     "final_error_max_abs": ("final_abs", False),
-    "tail_error_norm_max": ("max_norm", True), "tail_max_abs_error": ("max_norm", True),
+    "tail_error_norm_max": ("max_norm", True),
     "tail_error_max_abs": ("max_abs", True),
-    "rms_error_norm": ("rms", False), "rms_error": ("rms", False),
-    "error_norm_max": ("max_norm", False), "max_abs_error": ("max_norm", False),
+    "rms_error_norm": ("rms", False),
+    "error_norm_max": ("max_norm", False),
 }
 _CALL = re.compile(r"^\s*(?P<fn>[A-Za-z_]+)\s*\(\s*(?P<sig>[^()]+?)\s*\)\s*$")
 _CONSTRAINT = re.compile(r"^(?P<expr>.+?)\s*(?P<op><=|>=)\s*(?P<bound>[-+0-9.eE]+)\s*$")
 
 
 def parse_objective(text: str) -> tuple:
-    """'rms_error' -> ('rms', None, False); 'max_abs(tau.y)' -> ('max_abs', 'tau.y', False);
+    """'rms_error_norm' -> ('rms', None, False); 'max_abs(tau.y)' -> ('max_abs', 'tau.y', False);
     the signal None means the diagram's ``metrics: error:`` signal."""
     text = str(text).strip()
     if text in _NAMED:

@@ -120,7 +120,7 @@ class Result:
                 for text, a, b, shape in self.sensitivity_data["parameters"]}
 
     def metric_gradient(self, metric: str, param: str | None = None):
-        """The gradient of a metric (``rms_error``, ... or ``FUNCTION(SIGNAL)``: see
+        """The gradient of a metric (``rms_error_norm``, ... or ``FUNCTION(SIGNAL)``: see
         ``fwdstep.results.objectives``) with respect to every differentiated parameter
         ({param: array of its shape}), or to ``param`` alone."""
         from fwdstep.results.objectives import objective

@@ -1,10 +1,10 @@
 """Gain tuning: gradient-based optimisation of a diagram's parameters.
 
-    fwdstep tune D --vary K=10:200 --vary Lambda=1:50 --minimize rms_error \\
+    fwdstep tune D --vary K=10:200 --vary Lambda=1:50 --minimize rms_error_norm \\
                    --subject-to "max_abs(tau.y) <= 87" -o DIR
 
 ``tune`` minimises an objective (``fwdstep.results.objectives``: a metric such as
-``rms_error`` or ``FUNCTION(SIGNAL)``) over box bounds, subject to objectives bounded above
+``rms_error_norm`` or ``FUNCTION(SIGNAL)``) over box bounds, subject to objectives bounded above
 or below.  Every evaluation is one run with forward sensitivities
 (``fwdstep.sensitivities``), which gives the objective, the constraints and their exact
 gradients together.  The search:

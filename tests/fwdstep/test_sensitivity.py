@@ -113,12 +113,12 @@ def test_metric_gradients_equal_differences_of_the_metrics(theorem1):
     _, runs = _differences(THEOREM1, overrides, "alpha", 4.0)
     h = 4e-3
     from fwdstep.results.objectives import objective
-    for metric in ("rms_error", "final_error_norm", "max_abs(tau.y)", "ise(e.y)"):
+    for metric in ("rms_error_norm", "final_error_norm", "max_abs(tau.y)", "ise(e.y)"):
         v = [objective(run, metric) for run in runs]
         ref = (4 * (v[2] - v[3]) / h - (v[0] - v[1]) / (2 * h)) / 3
         got = r.metric_gradient(metric, "alpha")
         assert abs(got - ref) <= 1e-6 * max(abs(ref), 1e-12) + 1e-12, metric
-    grads = r.metric_gradient("rms_error")
+    grads = r.metric_gradient("rms_error_norm")
     assert grads["theta0"].shape == (4,) and np.shape(grads["alpha"]) == ()
 
 
