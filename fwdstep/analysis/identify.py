@@ -214,7 +214,8 @@ def _driver(d, block: str, port: str) -> str | None:
 def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
                  bandwidth=None, confidence: float = 0.95, truth=None) -> tuple:
     """(``Identification``, the signal names used, the diagram) from a saved run directory
-    (``fwdstep run D -o RUN``): the run's diagram is loaded again with its parameters, the
+    (``fwdstep run D -o RUN``): the run's diagram is loaded again as it was run (its recorded
+    copy and --set values, fwdstep.results.provenance), the
     regressor block taken from it, q/qdot default to the signals feeding the regressor's q
     and qdot inputs, tau to the input 'tau' of the block producing q."""
     from fwdstep.results.result import load_result
@@ -223,11 +224,16 @@ def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
     path = r.stored.get("diagram")
     if not path:
         raise ConfigError(f"{run_dir}: the saved run names no diagram")
-    params = r.stored.get("parameters") or {}
-    try:
-        d = load_diagram(path, {k: v for k, v in params.items() if v is not None})
-    except ConfigError:
-        d = load_diagram(path)
+    prov = r.stored.get("provenance")
+    if isinstance(prov, dict) and prov.get("diagram"):   # the copy of the diagram as run
+        from fwdstep.results.provenance import recorded_diagram
+        d = recorded_diagram(r.stored, run_dir)
+    else:
+        params = r.stored.get("parameters") or {}
+        try:
+            d = load_diagram(path, {k: v for k, v in params.items() if v is not None})
+        except ConfigError:
+            d = load_diagram(path)
     blocks = {b.name: b for b in d.blocks}
     if regressor not in blocks:
         raise ConfigError(f"--regressor '{regressor}': the run's diagram has no block "

@@ -195,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("-o", "--outdir", default=None,
                        help="output directory (default: RUN/identify)")
     ident.add_argument("--force", action="store_true", help="overwrite existing results")
+    ident.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                       help=_PLUGIN_HELP + "; a run's own plugin files are loaded from its "
+                                           "record")
     return p
 
 

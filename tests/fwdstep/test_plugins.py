@@ -198,3 +198,7 @@ def test_every_verb_takes_plugin_and_a_plugin_runs_report_draws_it(diagram, tmp_
                 "--workers", "1")
     assert sweep.returncode == 0, sweep.stderr
     assert fwd("rerun", "a", "-o", "c", "--plugin", PLUGIN, "-q").returncode == 0
+    from fwdstep.cli.arguments import build_parser
+    verbs = [a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction"]
+    for name, parser in verbs[0].choices.items():          # every verb, also those to come
+        assert "--plugin" in {o for a in parser._actions for o in a.option_strings}, name
