@@ -6,134 +6,125 @@ are ``fwdstep.run.outcome``'s.
 """
 from __future__ import annotations
 
-import time as _time
-
 import numpy as np
 
 from fwdstep.core import signals
-from fwdstep.core.errors import ConfigError, DiagramError, SimulationError
-from fwdstep.results.result import Result
+from fwdstep.core.errors import ConfigError
 from fwdstep.run import finite
-from fwdstep.run.evaluate import (_locate_failure, _make_evaluator, check_shapes,
-                                  initial_state)
-from fwdstep.run.events import apply_updates, plan_events
-from fwdstep.run.outcome import (SimulationInterrupted, _divergence_message, _finish, _reason,
-                                 _rows_recorded)
+from fwdstep.run.backend import Backend
+from fwdstep.run.evaluate import _make_evaluator
+from fwdstep.run.events import apply_updates
+from fwdstep.run.outcome import _divergence_message, _rows_recorded
+from fwdstep.run.program import build_program
 from fwdstep.structure.compiler import CompiledDiagram
 
 
-def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
-    """``simulate`` with the numba backend: the same procedure, run in compiled chunks, on
-    the same step grid (``plan_events``); discrete updates are applied here, between the
-    chunks the loop ends at them (status 3, ``backend_numba.event_arrays``)."""
-    try:
-        from fwdstep.compiled import backend_numba
-    except ImportError:
-        raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
-                          "backend 'numpy')", file=d.file) from None
-    cfg = d.spec.simulation
-    h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
-    wall0 = _time.perf_counter()
-    n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
-    events = plan_events(d, h, n_steps)   # the NumPy path's split steps, run in the loop
-    prog = backend_numba.build_program(d, n_rows, events)
-    B = d.batch
-    x = prog.xn                               # (B, N); each variant runs on its own row
-    x[...] = d.x0
-    alive = np.ones(B, dtype=bool)
-    died_at = np.full(B, np.nan)
-    rows, codes, n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))
-    status, message, error = "ok", "", None
-    reasons: dict = {}                        # variant of a batch -> why it diverged
-    n, t, row = 0, 0.0, 0
-    next_report = wall0 + 1.0
-    with np.errstate(all="ignore"):
+class CompiledBackend(Backend):
+    """The numba backend of the run loop (``fwdstep.run.simulate.run``): the same
+    procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
+    (``plan_events``); discrete updates are applied here, between the chunks the loop ends
+    at them (status 3, ``backend_numba.event_arrays``).  A batch runs its variants in
+    parallel, each on its own row of the state, each stopping where it fails."""
+
+    def __init__(self, d: CompiledDiagram, plan):
+        super().__init__(d, plan)
         try:
-            x[...] = (initial_state(d, event=events.start if events is not None else None)
-                      if x0 is None else np.asarray(x0, dtype=float))
-            check_shapes(d, 0.0, x)           # on the NumPy path, before numba compiles:
-            # a block that raises or returns a wrong shape is named, not left to numba
-            with signals.deferred():          # a signal during numba's compile is acted on
-                _compile(prog, d)             # after it (raised inside numba's callbacks it
-            late = signals.pending()          # was swallowed and broke the function)
-            if late is not None:
-                raise late
-            sample = _sampler(d, events, x) if events is not None and events.discrete else None
-            while n < n_steps:
-                with signals.held():      # a signal during the chunk ends the run after
-                    # its rows are counted (Python raised it the moment the chunk returned)
-                    n1 = min(n + backend_numba.CHUNK, n_steps)
-                    if B == 1:
-                        codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
-                    else:                         # variants in parallel (numba prange)
-                        prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
-                    paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
-                    if paused.any():                  # all alive variants stop at that row
-                        q = int(prog.events[3][np.flatnonzero(paused)[0]])
-                        a, lo = prog.events[2][q, 0], prog.events[2][q, 2]
-                        apply_updates(prog.row_events[q], max(a, lo), x, sample)
-                        codes[paused] = 0
-                        n1 = int(n_next[paused][0])   # go on from that step (and row)
-                    newly = (codes != 0) & alive
-                    if newly.any():
-                        died_at[newly] = n_next[newly] * h     # t + h of the failing step,
-                        alive &= ~newly                        # status 2: t of the record
-                        for b in np.flatnonzero(newly) if B > 1 else ():
-                            reasons[int(b)] = (
-                                _compiled_output_failure(d, died_at[b], x, b, alone=True)[0]
-                                if codes[b] == 2
-                                else _divergence_message(d, x, bound, died_at[b], b))
-                        if not alive.any():
-                            last = int(np.argmax(n_next))
-                            n = int(n_next.max()) - 1
-                            t = n * h
-                            row = int(rows.max())
-                            status = "diverged"
-                            if codes[last] == 2:         # an unrecorded output not finite
-                                t = float(n_next[last] * h)
-                                message, x = _compiled_output_failure(d, t, x, last)
-                                break
-                            message = _divergence_message(d, x, bound, t + h)
-                            break
-                    n = n1
-                    t = n * h
-                    row = int(rows.max())
-                    if progress is not None and _time.perf_counter() >= next_report:
-                        progress(n / n_steps)
-                        next_report = _time.perf_counter() + 1.0
-            else:
-                t = n_steps * h
-                end = events.final if events is not None else None
-                if end is not None and end.updates:   # an event at t_final: its right limit
-                    apply_updates(end, max(t, end.hi), x, sample)
-                for v in np.flatnonzero(alive):
-                    if prog.final(t, int(rows[v]), int(v)) == 2:   # an output not finite
-                        died_at[v], alive[v], last = t, False, int(v)
-                        if B > 1:
-                            reasons[last] = _compiled_output_failure(d, t, x, last, True)[0]
-                row = int(rows.max()) + 1
-                n = n_steps - 1
-                if not alive.any():
-                    status = "diverged"
-                    message, x = _compiled_output_failure(d, t, x, last)
-        except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.core.signals)
-            status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
-            error = SimulationInterrupted(message, time=t)
-            error.signum = getattr(exc, "signum", 2)
-        except SimulationError as exc:    # an object-mode block's error: already says where
-            status, message, error = "error", str(exc), exc
-            row = _rows_recorded(prog.t_log, rows, row)
-        except DiagramError:              # numba cannot compile a kernel: bad input
-            raise
-        except BaseException as exc:  # noqa: BLE001 - a SystemExit in a kernel too: the
-            # block's error (status error, data kept), never the end of fwdstep with exit 0
-            error = _locate_failure(d, t, x.copy(), exc)
-            error.__cause__ = exc
-            status, message = "error", str(error)
-            row = _rows_recorded(prog.t_log, rows, row)
-    prog.seal()
-    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at,
-                   x, n, t, wall0, reasons)
+            from fwdstep.compiled import backend_numba
+        except ImportError:
+            raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' "
+                              "(or use backend 'numpy')", file=d.file) from None
+        self.numba = backend_numba
+        cfg = d.spec.simulation
+        self.h, self.n_steps, self.bound = cfg.step, cfg.n_steps, cfg.bound
+        n_rows = self.n_steps // cfg.log_every + 1 + (1 if self.n_steps % cfg.log_every else 0)
+        self.prog = prog = backend_numba.build_program(d, n_rows, plan)
+        B = d.batch
+        self.x = prog.xn                      # (B, N); each variant runs on its own row
+        self.x[...] = d.x0
+        self.t_log, self.logs = prog.t_log, prog.logs
+        self.rows, self.codes, self.n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))
+        self.position = 0                     # the next step to take
+        self.sample = None
+
+    def start(self, x0) -> None:
+        """Compile (the run loop checked every block's shapes on the NumPy path first: a
+        block that raises or returns a wrong shape is named, not left to numba)."""
+        with signals.deferred():              # a signal during numba's compile is acted on
+            _compile(self.prog, self.d)       # after it (raised inside numba's callbacks it
+        late = signals.pending()              # was swallowed and broke the function)
+        if late is not None:
+            raise late
+        self.x[...] = x0
+        if self.plan is not None and self.plan.discrete:
+            self.sample = _sampler(self.d, self.plan, self.x)
+
+    def update(self, event, ts: float) -> None:
+        apply_updates(event, ts, self.x, self.sample)
+
+    def advance(self, out) -> None:
+        prog, x, h, alive = self.prog, self.x, self.h, out.alive
+        rows, codes, n_next = self.rows, self.codes, self.n_next
+        B = self.d.batch
+        with signals.held():      # a signal during the chunk ends the run after its rows
+            n = self.position     # are counted (Python raised it the moment the chunk returned)
+            n1 = min(n + self.numba.CHUNK, self.n_steps)
+            if B == 1:
+                codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
+            else:                             # variants in parallel (numba prange)
+                prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
+            paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
+            if paused.any():                  # all alive variants stop at that row
+                q = int(prog.events[3][np.flatnonzero(paused)[0]])
+                a, lo = prog.events[2][q, 0], prog.events[2][q, 2]
+                self.update(prog.row_events[q], max(a, lo))
+                codes[paused] = 0
+                n1 = int(n_next[paused][0])   # go on from that step (and row)
+            newly = (codes != 0) & alive
+            if newly.any():                   # status 1: t + h of the failing step,
+                d, bound = self.d, self.bound     # status 2: t of the record
+                if out.variants_failed(newly, n_next[newly] * h, lambda b: (
+                        _compiled_output_failure(d, out.died_at[b], x, b, alone=True)[0]
+                        if codes[b] == 2
+                        else _divergence_message(d, x, bound, out.died_at[b], b))):
+                    last = int(np.argmax(n_next))
+                    self.n = int(n_next.max()) - 1
+                    self.t = self.n * h
+                    self.row = int(rows.max())
+                    if codes[last] == 2:          # an unrecorded output not finite
+                        self.t = float(n_next[last] * h)
+                        message, blamed = _compiled_output_failure(d, self.t, x, last)
+                        out.stop("diverged", message, blamed=blamed)
+                    else:
+                        out.stop("diverged", _divergence_message(d, x, bound, self.t + h),
+                                 blamed=x, time=self.t + h)
+                    return
+            self.position = self.n = n1
+            self.t = n1 * h
+            self.row = int(rows.max())
+            self.done = n1 >= self.n_steps
+            self.fraction = n1 / max(self.n_steps, 1)
+
+    def final_record(self, t: float, ts: float, out) -> None:
+        """Each alive variant's outputs at t and their record (the event rows of the
+        compiled loop give its stage time ts)."""
+        d, x, alive = self.d, self.x, out.alive
+        last = 0
+        for v in np.flatnonzero(alive):
+            if self.prog.final(t, int(self.rows[v]), int(v)) == 2:   # an output not finite
+                last = int(v)
+                out.variants_failed([last], t, lambda b: _compiled_output_failure(
+                    d, t, x, b, True)[0])
+        self.row = int(self.rows.max()) + 1
+        self.n = self.n_steps - 1
+        if not alive.any():
+            message, blamed = _compiled_output_failure(d, t, x, last)
+            out.stop("diverged", message, blamed=blamed)
+
+    def after_error(self) -> None:
+        self.row = _rows_recorded(self.prog.t_log, self.rows, self.row)
+
+    def close(self) -> None:
+        self.prog.seal()
 
 
 def _compile(prog, d: CompiledDiagram) -> None:

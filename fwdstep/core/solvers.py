@@ -1,6 +1,7 @@
 """Explicit fixed-step Runge-Kutta methods as Butcher-tableau data.
 
-One generic stepper (in ``fwdstep.simulate``) runs any of them.  Each method documents its
+One generic stepper runs any of them: ``rk_step`` states the procedure once, from the
+step plan the generated program and the compiled loop are also made of.  Each method documents its
 order; ``tests/fwdstep/test_solvers.py`` fits the slope of log(error) against log(step) to
 prove it.
 """
@@ -105,22 +106,31 @@ def step_plan(tableau: Tableau, h: float):
     return stages, final
 
 
+def rk_step(f, t: float, x: np.ndarray, plan, k: list) -> np.ndarray:
+    """One step of the procedure (``fwdstep.run.simulate``) from (t, x) with a step plan
+    (``step_plan``): ``k[0] = f(t, x)``, ``k[i] = f(t + c_i h, x + sum_j h a_ij k_j)`` with the
+    sums in the plan's order, and the new state ``x + sum_j h b_j k_j`` (a new array; x is
+    not changed).  The generated program (``fwdstep.run.program``) and the compiled loop
+    are made from the same plan and sum in the same order: the same numbers."""
+    stages, final = plan
+    k[0] = f(t, x)
+    for s, (ch, coeffs) in enumerate(stages, start=1):
+        xi = x.copy()
+        for j, a in coeffs:
+            xi += a * k[j]
+        k[s] = f(t + ch, xi)
+    for j, b in final:
+        x = x + b * k[j]
+    return x
+
+
 def integrate_ode(f, x0, t_final: float, h: float, method: str = "rk4") -> np.ndarray:
-    """Integrate ``x' = f(t, x)`` with a fixed step; the same stepper logic as simulate(),
-    for tests and for users who need a plain ODE."""
+    """Integrate ``x' = f(t, x)`` with a fixed step: ``rk_step``, the procedure of
+    ``fwdstep.simulate``, for tests and for users who need a plain ODE."""
     tab = TABLEAUX[method]
-    stages, final = step_plan(tab, h)
+    plan = step_plan(tab, h)
     x = np.array(x0, dtype=float)
-    n = int(round(t_final / h))
     k = [None] * tab.stages
-    for i in range(n):
-        t = i * h
-        k[0] = f(t, x)
-        for s, (ch, coeffs) in enumerate(stages, start=1):
-            xi = x.copy()
-            for j, a in coeffs:
-                xi += a * k[j]
-            k[s] = f(t + ch, xi)
-        for j, b in final:
-            x = x + b * k[j]
+    for i in range(int(round(t_final / h))):
+        x = rk_step(f, i * h, x, plan, k)
     return x

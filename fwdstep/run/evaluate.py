@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from fwdstep.core.errors import BlockRuntimeError
-from fwdstep.core.solvers import TABLEAUX, step_plan
+from fwdstep.core.solvers import TABLEAUX, rk_step, step_plan
 from fwdstep.run.events import apply_updates
 from fwdstep.structure.compiler import CompiledDiagram
 
@@ -44,24 +44,35 @@ def _make_evaluator(d: CompiledDiagram):
     return f, outputs, sig
 
 
+class _Found(Exception):
+    """The located failure, out of the replayed step."""
+
+    def __init__(self, error: BlockRuntimeError):
+        super().__init__(str(error))
+        self.error = error
+
+
 def _locate_failure(d: CompiledDiagram, t: float, x: np.ndarray, exc) -> BlockRuntimeError:
     """Which block raised during the step from (t, x), at which stage time and with which
-    inputs: the step is replayed with the reference evaluator, one block at a time."""
+    inputs: the step (``rk_step``, the procedure itself) is replayed with every block called
+    on its own (``checked_pass``)."""
     tab = TABLEAUX[d.spec.simulation.solver]
-    stages, _ = step_plan(tab, d.spec.simulation.step)
     sig: list = [None] * len(d.signal_names)
     for idx, arr in d.constant_signals.items():
         sig[idx] = arr
-    k = [np.zeros((d.batch, d.n_states)) for _ in range(tab.stages)]
+
+    def f(ts, xi):
+        dx = np.zeros((d.batch, d.n_states))
+        error = checked_pass(d, ts, xi, sig, dx)
+        if error is not None:
+            raise _Found(error)
+        return dx
+
     with np.errstate(all="ignore"):
-        for s, (ch, coeffs) in enumerate([(0.0, [])] + list(stages)):
-            ts = t + ch if s else t
-            xi = x.copy()
-            for j, a in coeffs:
-                xi += a * k[j]
-            error = checked_pass(d, ts, xi, sig, k[s])
-            if error is not None:
-                return error
+        try:
+            rk_step(f, t, x, step_plan(tab, d.spec.simulation.step), [None] * tab.stages)
+        except _Found as found:
+            return found.error
     return BlockRuntimeError(f"evaluation failed at t = {t:.6g}: {type(exc).__name__}: {exc}",
                              time=t)
 

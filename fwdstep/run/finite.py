@@ -31,15 +31,6 @@ from __future__ import annotations
 import numpy as np
 
 
-class NonFiniteOutput(Exception):
-    """Raised inside a run loop that cannot simply ``break`` (fwdstep.run.ivp); ``stop`` is
-    what ``probe_failure`` returned."""
-
-    def __init__(self, stop):
-        super().__init__(stop[2])
-        self.stop = stop
-
-
 def unlogged_signals(d) -> tuple:
     """Indices of the signals a run of ``d`` computes but does not record (constant zero
     signals of unconnected optional inputs are neither)."""

@@ -20,153 +20,141 @@ The whole batch is one ODE system; if any variant exceeds ``bound`` the run stop
 from __future__ import annotations
 
 import math
-import time as _time
 
 import numpy as np
 
-from fwdstep.structure.compiler import CompiledDiagram
 from fwdstep.core.errors import SimulationError
-from fwdstep.run.events import apply_updates, plan_events
-from fwdstep.results.result import Result
 from fwdstep.core.solvers import IVP_METHODS
-from fwdstep.run.evaluate import _locate_at, check_shapes, initial_state
-from fwdstep.run.outcome import SimulationInterrupted, _divergence_message, _finish
+from fwdstep.run import finite
+from fwdstep.run.backend import Backend
+from fwdstep.run.evaluate import _locate_at
+from fwdstep.run.events import apply_updates
+from fwdstep.run.outcome import _divergence_message
+from fwdstep.run.program import build_program
 
 #: tolerances when a diagram gives none
 DEFAULT_RTOL = 1e-8
 DEFAULT_ATOL = 1e-10
 
 
-def simulate_ivp(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None) -> Result:
-    """Integrate ``d`` with ``solve_ivp`` (method ``simulation.solver``); see the module
-    docstring.  Raises like ``fwdstep.simulate`` (the error carries the partial Result)."""
-    from scipy.integrate import solve_ivp
+class IvpBackend(Backend):
+    """``solve_ivp`` (method ``simulation.solver``) as a backend of the run loop
+    (``fwdstep.run.simulate.run``): each ``advance`` integrates one segment between declared
+    discontinuities and records the grid points in it; see the module docstring."""
 
-    from fwdstep.run import finite
-    from fwdstep.run.program import build_program
+    def __init__(self, d, plan):
+        super().__init__(d, plan)
+        cfg = d.spec.simulation
+        self.method = IVP_METHODS[cfg.solver]
+        self.rtol = getattr(cfg, "rtol", None) or DEFAULT_RTOL
+        self.atol = getattr(cfg, "atol", None) or DEFAULT_ATOL
+        h, n_steps, every = cfg.step, cfg.n_steps, cfg.log_every
+        self.bound = cfg.bound
+        self.t_final = t_final = n_steps * h
+        self.grid = [n * h for n in range(0, n_steps, every)] + [t_final]
+        # the fixed-step path's generated stage code: f(t, x) is its stage 1 at a given time
+        unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.run.finite)
+        probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
+        self.prog = build_program(d, len(self.grid),
+                                  sampled=tuple(plan.sampled_signals) if plan else (),
+                                  solver="euler", probe=probe)
+        self.check = finite.OutputCheck(d, *probe) if probe else None
+        self.t_log, self.logs = self.prog.t_log, self.prog.logs
+        inner = [(t, ev) for t, ev in (plan.instants if plan else []) if 0 < t < t_final]
+        start = (plan.instants[0][1] if plan and plan.instants and plan.instants[0][0] == 0
+                 else None)
+        end = plan.final if plan else None
+        # segments [a, b]: (a, b, lo, hi, event at a whose discrete blocks update there)
+        bounds = [(0.0, start)] + inner + [(t_final, end)]
+        self.segments = []
+        for (a, ev_a), (b, ev_b) in zip(bounds[:-1], bounds[1:]):
+            self.segments.append((a, b, ev_a.hi if ev_a else -math.inf,
+                                  math.nextafter(ev_b.lo, -math.inf) if ev_b else math.inf,
+                                  ev_a if ev_a and ev_a.updates else None))
+        self.x = np.empty((d.batch, d.n_states))  # the state; prog.xn is the program's scratch
+        self.segment = 0                          # the next segment
+        self.g = 0                                # the next grid row to record
+        self.steps = 0                            # the solver's steps
 
-    cfg = d.spec.simulation
-    method = IVP_METHODS[cfg.solver]
-    rtol = getattr(cfg, "rtol", None) or DEFAULT_RTOL
-    atol = getattr(cfg, "atol", None) or DEFAULT_ATOL
-    h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
-    t_final = n_steps * h
-    B, N = d.batch, d.n_states
-    wall0 = _time.perf_counter()
+    def _record(self, t_rec, ts, state, out) -> bool:
+        """Outputs at (ts, state), recorded as time t_rec; False when the run must stop."""
+        self.prog.xn[...] = state
+        self.prog.final_ts(t_rec, ts, self.row)
+        self.row += 1
+        return self.check is None or not out.output_check(self.t_log, self.logs,
+                                                          self.row - 1, self.check)
 
-    grid = [n * h for n in range(0, n_steps, every)] + [t_final]
-    plan = plan_events(d, h, n_steps)
-    # the fixed-step path's generated stage code: f(t, x) is its stage 1 at an explicit time
-    unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.run.finite)
-    probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
-    prog = build_program(d, len(grid), sampled=tuple(plan.sampled_signals) if plan else (),
-                         solver="euler", probe=probe)
-    check = finite.OutputCheck(d, *probe) if probe else None
-    xn, k0 = prog.xn, prog.k[0]
-    inner = [(t, ev) for t, ev in (plan.instants if plan else []) if 0 < t < t_final]
-    start = plan.instants[0][1] if plan and plan.instants and plan.instants[0][0] == 0 else None
-    end = plan.final if plan else None
-    # segments [a, b]: (a, b, lo, hi, event at a whose discrete blocks update there)
-    bounds = [(0.0, start)] + inner + [(t_final, end)]
-    segments = []
-    for (a, ev_a), (b, ev_b) in zip(bounds[:-1], bounds[1:]):
-        segments.append((a, b, ev_a.hi if ev_a else -math.inf,
-                         math.nextafter(ev_b.lo, -math.inf) if ev_b else math.inf,
-                         ev_a if ev_a and ev_a.updates else None))
+    def update(self, event, ts: float) -> None:
+        xn = self.prog.xn
+        xn[...] = self.x
+        apply_updates(event, ts, xn, self.prog.sample_signals)
+        self.x[...] = xn
 
-    status, message, error = "ok", "", None
-    alive = np.ones(B, dtype=bool)
-    died_at = np.full(B, np.nan)
-    row, steps, t = 0, 0, 0.0
-    x = np.empty((B, N))                       # the state; xn is the program's scratch
-    next_report = wall0 + 1.0
+    def advance(self, out) -> None:
+        """The next segment: solve_ivp over [a, b], the grid points in it recorded from the
+        dense output, the state checked against the bound at each."""
+        from scipy.integrate import solve_ivp
 
-    def record(t_rec, ts, state):
-        nonlocal row
-        xn[...] = state
-        prog.final_ts(t_rec, ts, row)
-        row += 1
-        bad = check.failed(alive) if check is not None else None
-        if bad is not None:
-            stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check, bad, alive,
-                                        died_at)
-            if stop is not None:
-                raise finite.NonFiniteOutput(stop)
+        d, prog, x, grid = self.d, self.prog, self.x, self.grid
+        B, N = x.shape
+        xn, k0 = prog.xn, prog.k[0]
+        a, b, lo, hi, event = self.segments[self.segment]
+        self.segment += 1
+        self.done = self.segment >= len(self.segments)
+        self.t = a
+        if event is not None:
+            self.update(event, max(a, lo))
+        tick, t_final = self.tick, self.t_final
 
-    def update(event, ts):
-        xn[...] = x
-        apply_updates(event, ts, xn, prog.sample_signals)
-        x[...] = xn
+        def rhs(tt, y):
+            xn[...] = y.reshape(B, N)
+            prog.first_ts(min(max(tt, lo), hi))
+            if tick is not None:
+                tick(tt / t_final)
+            return k0.reshape(-1).copy()
 
-    with np.errstate(all="ignore"):
-        try:
-            x[...] = (initial_state(d, event=plan.start if plan is not None else None)
-                      if x0 is None else np.asarray(x0, dtype=float))
-            check_shapes(d, 0.0, x)
-            g = 0                                  # next grid row to record
-            for a, b, lo, hi, event in segments:
-                t = a
-                if event is not None:
-                    update(event, max(a, lo))
+        last = b >= t_final
+        t_eval = []
+        while self.g < len(grid) and (grid[self.g] < b or (last and grid[self.g] <= b)):
+            t_eval.append(grid[self.g])
+            self.g += 1
+        if N == 0 or b <= a:
+            states = [x.copy() for _ in t_eval]
+            x_end = x.copy()
+        else:
+            sol = solve_ivp(rhs, (a, b), x.reshape(-1).copy(), method=self.method,
+                            t_eval=None, dense_output=True, rtol=self.rtol, atol=self.atol)
+            self.steps += max(len(sol.t) - 1, 0)
+            self.n = max(self.steps - 1, 0)
+            if sol.status < 0:
+                self.t = float(sol.t[-1])
+                raise SimulationError(f"solver {d.spec.simulation.solver} failed at t = "
+                                      f"{self.t:.6g}: {sol.message}", time=self.t)
+            states = [x.copy() if te == a else sol.sol(te).reshape(B, N) for te in t_eval]
+            x_end = sol.y[:, -1].reshape(B, N)
+        for te, xs in zip(t_eval, states):
+            if last and te == b:
+                continue                       # recorded after the final updates
+            if not (np.abs(xs) <= self.bound).all():
+                x_end, b = xs, te              # stop at the first record beyond it
+                break
+            if not self._record(te, max(te, lo), xs, out):
+                return
+        x[...] = x_end
+        self.t = b
+        self.fraction = b / t_final if t_final else 1.0
+        if not (np.abs(x) <= self.bound).all():
+            # the batch is one system: the run stops with its first variant beyond the bound
+            beyond = out.beyond_bound(x)
+            if not out.variants_failed(out.alive.copy(), b, lambda v: (
+                    _divergence_message(d, x, self.bound, b, v) if beyond[v] else
+                    f"stopped at t = {b:.6g} with its batch (solve_ivp integrates a batch as "
+                    "one system)")):
+                return
+            out.stop("diverged", _divergence_message(d, x, self.bound, b), blamed=x, time=b)
 
-                def rhs(tt, y, lo=lo, hi=hi):
-                    nonlocal next_report
-                    xn[...] = y.reshape(B, N)
-                    prog.first_ts(min(max(tt, lo), hi))
-                    if progress is not None and _time.perf_counter() >= next_report:
-                        progress(min(tt / t_final, 1.0))
-                        next_report = _time.perf_counter() + 1.0
-                    return k0.reshape(-1).copy()
+    def final_record(self, t: float, ts: float, out) -> None:
+        self._record(t, ts, self.x, out)
 
-                last = b >= t_final
-                t_eval = []
-                while g < len(grid) and (grid[g] < b or (last and grid[g] <= b)):
-                    t_eval.append(grid[g])
-                    g += 1
-                if N == 0 or b <= a:
-                    states = [x.copy() for _ in t_eval]
-                    x_end = x.copy()
-                else:
-                    sol = solve_ivp(rhs, (a, b), x.reshape(-1).copy(), method=method,
-                                    t_eval=None, dense_output=True, rtol=rtol, atol=atol)
-                    steps += max(len(sol.t) - 1, 0)
-                    if sol.status < 0:
-                        t = float(sol.t[-1])
-                        raise SimulationError(f"solver {cfg.solver} failed at t = {t:.6g}: "
-                                              f"{sol.message}", time=t)
-                    states = [x.copy() if te == a else sol.sol(te).reshape(B, N)
-                              for te in t_eval]
-                    x_end = sol.y[:, -1].reshape(B, N)
-                for te, xs in zip(t_eval, states):
-                    if last and te == b:
-                        continue                   # recorded after the final updates
-                    if not (np.abs(xs) <= bound).all():
-                        x_end, b = xs, te          # stop at the first record beyond it
-                        break
-                    record(te, max(te, lo), xs)
-                x[...] = x_end
-                t = b
-                if not (np.abs(x) <= bound).all():
-                    status = "diverged"
-                    message = _divergence_message(d, x, bound, t)
-                    died_at[:] = t
-                    alive[:] = False
-                    break
-            else:
-                if end is not None and end.updates:
-                    update(end, max(t_final, end.hi))
-                record(t_final, max(t_final, end.hi) if end else t_final, x)
-        except KeyboardInterrupt:
-            status, message = "interrupted", f"interrupted by the user at t = {t:.6g}"
-            error = SimulationInterrupted(message, time=t)
-        except SimulationError as exc:
-            status, message, error = "error", str(exc), exc
-        except finite.NonFiniteOutput as exc:     # an unrecorded output: block and port
-            row, status, message, x = exc.stop
-        except BaseException as exc:  # noqa: BLE001 - wrapped with block, time and inputs
-            error = _locate_at(d, t, x, exc)
-            error.__cause__ = exc
-            status, message = "error", str(error)
-    # _finish reports a divergence at its t + step: pass the time it happened minus a step
-    return _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
-                   max(steps - 1, 0), t - h, wall0)
+    def locate(self, exc):
+        return _locate_at(self.d, self.t, self.x, exc)

@@ -1,12 +1,13 @@
-"""How a run ends, stated once for every backend: the final record, divergence messages,
-interrupts (Ctrl-C, SIGTERM), and the Result with its status."""
+"""How a run ends, stated once for every backend: which variants failed, when and why (a
+state beyond the bound, an output not finite), interrupts (Ctrl-C, SIGTERM), errors, and the
+Result with its status.  ``fwdstep.run.simulate.run`` keeps one ``Outcome`` per run; the
+backends report what they detect to it and stop when it says the run is over."""
 from __future__ import annotations
 
 import time as _time
 
 import numpy as np
 
-from fwdstep.core import signals
 from fwdstep.core.errors import DivergenceError, SimulationError
 from fwdstep.results.result import Result
 from fwdstep.run import finite
@@ -29,39 +30,131 @@ def _rows_recorded(t_log, rows, row: int) -> int:
     return max(row, int(rows.max()), written)
 
 
-def _finish(d, t_log, logs, row, status, message, error, alive, died_at, x, n, t,
-            wall0, reasons=None) -> Result:
-    """The Result of a run (partial after an error), or the error carrying it.
-    ``reasons``: each diverged variant of a batch -> its own message (``Result.reasons``)."""
-    reasons = {} if reasons is None else reasons
-    B, N = d.batch, d.n_states
-    h, bound = d.spec.simulation.step, d.spec.simulation.bound
-    if status == "ok":                  # a diverged state stays the reported cause
-        bad = finite.first_non_finite_output(d, t_log, logs, row, alive, died_at, reasons)
-        if bad is not None:
-            row, status, message, x = bad
-    if B > 1 and (~alive).any() and status == "ok":
-        status = "partially diverged"
-        message = f"{int((~alive).sum())} of {B} variants diverged"
-    t_out = t_log[:row]
-    signals = {name: L[:row] for name, L in zip(d.logged, logs)}
-    if B > 1:
-        for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
-            for L in signals.values():
-                L[t_out >= died_at[b], b] = np.nan
-    result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
-                    wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
-                    diverged_at=died_at, reasons=reasons)
-    if status == "diverged" and isinstance(x, str):          # a block output, not a state
-        raise DivergenceError(message, time=float(t_out[-1]), block=x or None, result=result)
-    if status == "diverged":
-        blk, _ = d.state_owner(int(np.argmax(~(np.abs(x) <= bound)) % max(N, 1)))
-        raise DivergenceError(message, time=t + h, block=blk.name if blk else None,
-                              result=result)
-    if error is not None:
-        error.result = result
-        raise error
-    return result
+class Outcome:
+    """The state of a run's ending: ``alive`` (per variant), ``died_at`` (time each variant
+    failed, NaN while alive), ``reasons`` (a batch's variant -> its own one line), and the
+    run's ``status``, ``message``, ``error``.  ``running`` is True until a failure stops the
+    whole run (a single run's failure, or the last variant of a batch)."""
+
+    def __init__(self, d: CompiledDiagram):
+        self.d = d
+        B = d.batch
+        self.alive = np.ones(B, dtype=bool)
+        self.died_at = np.full(B, np.nan)
+        self.reasons: dict = {}
+        self.status, self.message, self.error = "ok", "", None
+        self.blamed = None          # the states (array) or the block name (str) at fault
+        self.fail_time = None       # a state's divergence: the time its step ended
+        self.rows = None            # rows to keep, when the failure decides them
+
+    @property
+    def running(self) -> bool:
+        return self.status == "ok"
+
+    # ------------------------------------------------------------------ what backends report
+    def beyond_bound(self, x) -> np.ndarray:
+        """The alive variants whose state in ``x`` is beyond the bound or not finite."""
+        bound = self.d.spec.simulation.bound
+        if not x.shape[1]:
+            return np.zeros(self.d.batch, dtype=bool)
+        return ~(np.abs(x).max(axis=1) <= bound) & self.alive
+
+    def states_diverged(self, x, t: float, bad=None) -> bool:
+        """Variants ``bad`` (default: every alive one beyond the bound) diverged at time t
+        (the end of their step).  Marks them, each with its own line in a batch; True (and
+        the run is over) when none is left."""
+        bound = self.d.spec.simulation.bound
+        bad = self.beyond_bound(x) if bad is None else bad
+        self.died_at[bad] = t
+        if self.d.batch > 1:
+            for b in np.flatnonzero(bad):
+                self.reasons[int(b)] = _divergence_message(self.d, x, bound, t, int(b))
+        self.alive &= ~bad
+        if self.alive.any():
+            return False
+        self.stop("diverged", _divergence_message(self.d, x, bound, t), blamed=x, time=t)
+        return True
+
+    def variants_failed(self, bad, times, reason) -> bool:
+        """Variants ``bad`` (mask or indices) failed at ``times``; ``reason(b)`` is variant
+        b's own line (asked for in a batch only).  True when none is left alive (the caller
+        then says why with ``stop``)."""
+        self.died_at[bad] = times
+        if self.d.batch > 1:
+            for b in (np.flatnonzero(bad) if np.asarray(bad).dtype == bool else bad):
+                self.reasons[int(b)] = reason(int(b))
+        self.alive[bad] = False
+        return not self.alive.any()
+
+    def output_check(self, t_log, logs, r: int, check) -> bool:
+        """After record ``r``: the unrecorded outputs (``finite.OutputCheck``) of the alive
+        variants.  True when the run must stop (a single run, or every variant gone)."""
+        bad = check.failed(self.alive)
+        if bad is None:
+            return False
+        stop = finite.probe_failure(self.d, t_log, logs, r, check, bad, self.alive,
+                                    self.died_at, self.reasons)
+        if stop is None:
+            return False
+        rows, status, message, blamed = stop
+        self.stop(status, message, blamed=blamed, rows=rows)
+        return True
+
+    def stop(self, status: str, message: str, blamed=None, time=None, rows=None,
+             error=None) -> None:
+        self.status, self.message, self.blamed = status, message, blamed
+        self.fail_time, self.rows, self.error = time, rows, error
+
+    def interrupted(self, exc, t: float) -> None:
+        """Ctrl-C, or SIGTERM/SIGHUP (fwdstep.core.signals), at time t."""
+        message = f"{_reason(exc)} at t = {t:.6g}"
+        error = SimulationInterrupted(message, time=t)
+        error.signum = getattr(exc, "signum", 2)
+        self.stop("interrupted", message, error=error)
+
+    def failed(self, error) -> None:
+        """A block raised (``error`` names it) or the run cannot go on."""
+        self.stop("error", str(error), error=error)
+
+    # ------------------------------------------------------------------ the end
+    def finish(self, t_log, logs, row: int, n: int, wall0: float) -> Result:
+        """The Result of a run (partial after an error), or the error carrying it; ``row``
+        rows recorded, ``n`` the last step taken (a finished run took n + 1)."""
+        d = self.d
+        B, N = d.batch, d.n_states
+        bound = d.spec.simulation.bound
+        if self.rows is not None:
+            row = self.rows
+        status, message, blamed = self.status, self.message, self.blamed
+        alive, died_at = self.alive, self.died_at
+        if status == "ok":                  # a diverged state stays the reported cause
+            bad = finite.first_non_finite_output(d, t_log, logs, row, alive, died_at,
+                                                 self.reasons)
+            if bad is not None:
+                row, status, message, blamed = bad
+        if B > 1 and (~alive).any() and status == "ok":
+            status = "partially diverged"
+            message = f"{int((~alive).sum())} of {B} variants diverged"
+        t_out = t_log[:row]
+        signals = {name: L[:row] for name, L in zip(d.logged, logs)}
+        if B > 1:
+            for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
+                for L in signals.values():
+                    L[t_out >= died_at[b], b] = np.nan
+        result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
+                        wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
+                        diverged_at=died_at, reasons=self.reasons)
+        if status == "diverged" and isinstance(blamed, str):     # a block output, not a state
+            raise DivergenceError(message, time=float(t_out[-1]), block=blamed or None,
+                                  result=result)
+        if status == "diverged":
+            blk, _ = d.state_owner(int(np.argmax(~(np.abs(blamed) <= bound)) % max(N, 1)))
+            raise DivergenceError(message, time=self.fail_time,
+                                  block=blk.name if blk else None, result=result)
+        if self.error is not None:
+            self.error.result = result
+            raise self.error
+        return result
 
 
 def _divergence_message(d: CompiledDiagram, x, bound, t, variant=None) -> str:

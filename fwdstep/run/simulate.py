@@ -24,11 +24,23 @@ procedure above.
 Nothing per-run is stored in the diagram or its blocks: all buffers live in this function's
 frame.
 
-``simulate`` runs this procedure through ``fwdstep.run.program``, which generates it once per
-run as straight-line code over preallocated buffers and fuses the linear blocks (each
-linear output still computed once per stage, as part of one matrix product); the
-evaluator ``_make_evaluator`` below is the plain form, used for the initial state and to
-locate a failing block.  docs/performance.md tells what was measured and changed.
+One run loop (``run`` below) drives every backend through one interface (``Backend``): it
+sets the initial state, asks the backend to advance, reports progress, applies the final
+updates and record, and owns, through ``fwdstep.run.outcome.Outcome``, everything about how a
+run ends (divergence, outputs not finite, errors, Ctrl-C) and the Result.  The backends:
+
+* ``numpy`` (``fwdstep.run.numpy_backend``): this procedure as straight-line code generated
+  once per run (``fwdstep.run.program``; linear blocks fused), advanced step by step;
+* ``compiled`` (``fwdstep.compiled.driver``, loaded by name: the run layer never imports it):
+  the same procedure in numba, advanced a chunk of steps at a time;
+* solve_ivp (``fwdstep.run.ivp``): scipy's adaptive solvers, advanced one segment between
+  declared discontinuities at a time.
+
+The procedure itself is stated once as data (``fwdstep.core.solvers.step_plan``: the nonzero
+coefficients in the order they are summed) and run by ``fwdstep.core.solvers.rk_step`` (the
+plain form: ``integrate_ode``, the search for a failing block in ``fwdstep.run.evaluate``);
+the generated program and the compiled loop are made from the same plan, sum in the same
+order and give the same numbers.  docs/performance.md tells what was measured and changed.
 """
 from __future__ import annotations
 
@@ -36,18 +48,16 @@ import time as _time
 
 import numpy as np
 
-from fwdstep.structure.compiler import CompiledDiagram
-from fwdstep.core.errors import BlockRuntimeError, ConfigError, DivergenceError, SimulationError
-from fwdstep.run.program import build_program
-from fwdstep.results.result import Result
-from fwdstep.run.events import apply_updates, plan_events
-from fwdstep.run import finite
-from fwdstep.core import signals
+from fwdstep.core.errors import ConfigError, DiagramError, SimulationError
 from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS
-from fwdstep.run.evaluate import _locate_failure, check_shapes, initial_state
-from fwdstep.run.ivp import simulate_ivp
-from fwdstep.run.outcome import SimulationInterrupted, _divergence_message, _finish, _reason
+from fwdstep.results.result import Result
+from fwdstep.run import finite
+from fwdstep.run.backend import Backend
+from fwdstep.run.evaluate import check_shapes, initial_state
+from fwdstep.run.events import plan_events
+from fwdstep.run.outcome import Outcome, SimulationInterrupted  # noqa: F401 - SimulationInterrupted: public name
+from fwdstep.structure.compiler import CompiledDiagram
 
 #: backends that plug into this loop from a higher layer, loaded by name on first use (as
 #: block plugins are): the run layer never imports them.  With "numpy", BACKENDS.
@@ -63,6 +73,69 @@ def _plugged(name: str, d):
             raise
         raise ConfigError(f"backend '{name}' needs numba: pip install 'fwdstep[fast]' (or use "
                           "backend 'numpy')", file=d.file) from None
+
+
+class _Progress:
+    """``progress(fraction)`` at most about once per second of wall time."""
+
+    def __init__(self, progress, wall0: float):
+        self.progress, self.next = progress, wall0 + 1.0
+
+    def __call__(self, fraction: float) -> None:
+        if self.progress is not None:
+            now = _time.perf_counter()
+            if now >= self.next:
+                self.progress(min(fraction, 1.0))
+                self.next = now + 1.0
+
+
+def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
+        wall0: float | None = None) -> Result:
+    """The run loop, for every backend: initial state, advance until t_final (progress about
+    once a second; a single run whose recorded outputs went NaN/inf stops there), the
+    updates and record at t_final; every ending decided by one ``Outcome``."""
+    cfg = d.spec.simulation
+    wall0 = _time.perf_counter() if wall0 is None else wall0
+    out = Outcome(d)
+    tick = backend.tick = _Progress(progress, wall0)
+    plan = backend.plan
+    single = d.batch == 1
+    checked = 0                               # log rows already checked for NaN/inf
+    with np.errstate(all="ignore"):
+        try:
+            x = (initial_state(d, event=plan.start if plan is not None else None)
+                 if x0 is None else np.asarray(x0, dtype=float))
+            check_shapes(d, 0.0, x)           # every block once, on the NumPy path: a block
+            backend.start(x)                  # that raises or returns a wrong shape is named
+            while out.running and not backend.done:
+                backend.advance(out)
+                tick(backend.fraction)
+                if single and out.running:    # an output gone NaN/inf: stop early
+                    if not finite.rows_finite(backend.logs, checked, backend.row):
+                        break                 # (Outcome.finish says where and what)
+                    checked = backend.row
+            if out.running and backend.done:
+                t = cfg.n_steps * cfg.step
+                end = plan.final if plan is not None else None
+                ts = max(t, end.hi) if end is not None else t
+                if end is not None and end.updates:   # an event at t_final: its right limit
+                    backend.update(end, ts)
+                backend.final_record(t, ts, out)
+        except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.core.signals)
+            out.interrupted(exc, backend.t)
+        except SimulationError as exc:    # a discrete algebraic loop, a solver's failure, an
+            out.failed(exc)               # object-mode block's error: already says where
+            backend.after_error()
+        except DiagramError:              # bad input found late (numba refuses a kernel)
+            raise
+        except BaseException as exc:  # noqa: BLE001 - a SystemExit in a kernel too: the
+            # block's error (status error, data kept), never the end of fwdstep with exit 0
+            error = backend.locate(exc)
+            error.__cause__ = exc
+            out.failed(error)
+            backend.after_error()
+    backend.close()
+    return out.finish(backend.t_log, backend.logs, backend.row, backend.n, wall0)
 
 
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
@@ -108,158 +181,30 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
     from fwdstep.core.budgets import check_log
     check_log(d, max_log_bytes, to_disk=log_dir, api=True)
     cfg = d.spec.simulation
-    if record_states and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
+    name = backend or cfg.backend
+    if record_states and (cfg.solver in IVP_METHODS or name != "numpy"):
         raise ConfigError("recording the states needs the numpy backend and a fixed-step "
                           "solver", file=d.file)
-    if log_dir is not None and (cfg.solver in IVP_METHODS or (backend or cfg.backend) != "numpy"):
+    if log_dir is not None and (cfg.solver in IVP_METHODS or name != "numpy"):
         raise ConfigError("--log-to-disk works with the numpy backend and the fixed-step "
                           "solvers only", file=d.file)
-    if cfg.solver in IVP_METHODS:
-        if (backend or cfg.backend) == "compiled":
-            raise ConfigError(f"solver '{cfg.solver}' runs through scipy's solve_ivp; it has no "
-                              "compiled backend (use backend numpy)", file=d.file)
-        return simulate_ivp(d, progress, x0)
-    if (backend or cfg.backend) == "compiled":
-        return _plugged("compiled", d).simulate_compiled(d, progress, x0)
-    if (backend or cfg.backend) != "numpy":
+    if cfg.solver in IVP_METHODS and name == "compiled":
+        raise ConfigError(f"solver '{cfg.solver}' runs through scipy's solve_ivp; it has no "
+                          "compiled backend (use backend numpy)", file=d.file)
+    if name not in BACKENDS:
         raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}")
-    h = cfg.step
-    n_steps = cfg.n_steps
-    events = plan_events(d, h, n_steps)
-    special = events.steps if events is not None else {}
-    sampled = tuple(events.sampled_signals) if events is not None else ()
-    every = cfg.log_every
-    B, N = d.batch, d.n_states
-    bound = cfg.bound
     wall0 = _time.perf_counter()
-
-    n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
-    alloc = None
-    if log_dir is not None:
-        from fwdstep.core.budgets import disk_allocator
-        alloc = disk_allocator(log_dir)
-    unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.run.finite)
-    probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
-    prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled, probe=probe)
-    states = np.full((n_rows, B, N), np.nan) if record_states else None
-    check = finite.OutputCheck(d, *probe) if probe else None
-    reasons: dict = {}                        # variant of a batch -> why it diverged
-    x = prog.xn
-    x[...] = d.x0
-    first, first_record, rest = prog.first, prog.first_record, prog.rest
-    row = 0
-    alive = np.ones(B, dtype=bool)
-    died_at = np.full(B, np.nan)
-    status, message, error = "ok", "", None
-    n = 0
-    t = 0.0
-    next_report = wall0 + 1.0
-    absx = np.empty((B, N))
-    single = B == 1 and N > 0
-    checked = 0                               # log rows already checked for NaN/inf
-
-    with np.errstate(all="ignore"):
-        try:
-            x[...] = (initial_state(d, event=events.start if events is not None else None)
-                      if x0 is None else np.asarray(x0, dtype=float))
-            check_shapes(d, 0.0, x)
-            for n in range(n_steps):
-                t = n * h
-                if n in special:              # a step that touches a discontinuity
-                    for i, sub in enumerate(special[n]):
-                        ts = max(sub.a, sub.lo)
-                        if sub.event is not None:
-                            apply_updates(sub.event, ts, x, prog.sample_signals)
-                        if i == 0 and n % every == 0:
-                            prog.first_record_ts(t, ts, row)
-                            if states is not None:
-                                states[row] = x
-                            row += 1
-                        else:
-                            prog.first_ts(ts)
-                        prog.rest_h(sub.a, sub.b - sub.a, sub.lo, sub.hi)
-                else:
-                    if n % every == 0:
-                        first_record(t, row)
-                        if states is not None:
-                            states[row] = x
-                        row += 1
-                    else:
-                        first(t)
-                    rest(t)
-                if single:
-                    if np.abs(x, out=absx).max() <= bound:
-                        pass
-                    else:
-                        status = "diverged"
-                        message = _divergence_message(d, x, bound, t + h)
-                        died_at[0] = t + h
-                        alive[0] = False
-                        break
-                elif N:                       # one reduction; per variant only if it fails
-                    if not np.abs(x, out=absx).max() <= bound:     # (NaN fails it too)
-                        m = absx.max(axis=1)
-                        bad = ~(m <= bound) & alive
-                        died_at[bad] = t + h
-                        for b in np.flatnonzero(bad):
-                            reasons[int(b)] = _divergence_message(d, x, bound, t + h, b)
-                        alive &= ~bad
-                        if not alive.any():
-                            status = "diverged"
-                            message = _divergence_message(d, x, bound, t + h)
-                            break
-                        x[~alive] = 0.0      # frozen variants: keep the others finite, going
-                if check is not None and n % every == 0:     # the outputs just recorded
-                    bad = check.failed(alive)
-                    if bad is not None:
-                        stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check,
-                                                    bad, alive, died_at, reasons)
-                        if stop is not None:
-                            row, status, message, x = stop
-                            break
-                        x[~alive] = 0.0
-                if progress is not None and n % 2048 == 0:
-                    now = _time.perf_counter()
-                    if now >= next_report:
-                        progress((n + 1) / n_steps)
-                        next_report = now + 1.0
-                if B == 1 and n % 8192 == 8191:    # an output gone NaN/inf: stop early,
-                    if not finite.rows_finite(prog.logs, checked, row):  # _finish: where
-                        break
-                    checked = row
-            else:
-                t = n_steps * h
-                end = events.final if events is not None else None
-                if end is None:
-                    prog.final(t, row)
-                else:                         # an event at t_final: its right limit
-                    if end.updates:
-                        apply_updates(end, max(t, end.hi), x, prog.sample_signals)
-                    prog.final_ts(t, max(t, end.hi), row)
-                if states is not None:
-                    states[row] = x
-                row += 1
-                bad = check.failed(alive) if check is not None else None
-                if bad is not None:
-                    stop = finite.probe_failure(d, prog.t_log, prog.logs, row - 1, check, bad,
-                                                alive, died_at, reasons)
-                    if stop is not None:
-                        row, status, message, x = stop
-        except KeyboardInterrupt as exc:     # Ctrl-C, or SIGTERM/SIGHUP (fwdstep.core.signals)
-            status, message = "interrupted", f"{_reason(exc)} at t = {t:.6g}"
-            error = SimulationInterrupted(message, time=t)
-            error.signum = getattr(exc, "signum", 2)
-        except SimulationError as exc:    # a discrete algebraic loop: already says where
-            status, message, error = "error", str(exc), exc
-        except BaseException as exc:  # noqa: BLE001 - a SystemExit in a kernel too: the
-            # block's error (status error, data kept), never the end of fwdstep with exit 0
-            error = _locate_failure(d, t, x, exc)
-            error.__cause__ = exc
-            status, message = "error", str(error)
-    result = _finish(d, prog.t_log, prog.logs, row, status, message, error, alive, died_at, x,
-                     n, t, wall0, reasons)
-    if states is not None:
-        result.states = states[:len(result.t)]
+    plan = plan_events(d, cfg.step, cfg.n_steps)
+    if cfg.solver in IVP_METHODS:
+        from fwdstep.run.ivp import IvpBackend
+        stepper = IvpBackend(d, plan)
+    elif name == "numpy":
+        from fwdstep.run.numpy_backend import NumpyBackend
+        stepper = NumpyBackend(d, plan, fuse=fuse, log_dir=log_dir,
+                               record_states=record_states)
+    else:
+        stepper = _plugged(name, d).CompiledBackend(d, plan)
+    result = run(d, stepper, progress, x0, wall0)
+    if record_states:
+        result.states = stepper.states[:len(result.t)]
     return result
-
-
