@@ -1,5 +1,10 @@
 """Memoryless and rate nonlinearities: saturation, dead zone, rate limit, friction, switch,
-1-D table lookup.
+1-D table lookup, relay (with hysteresis), and the Stop block.
+
+Every regime change is also declared as a zero-crossing function next to the kernel
+(``zero_crossings``: the guard values whose sign change marks it; docs/writing-blocks.md),
+so a fixed-step run ends its step exactly where a limit is reached, a switch flips or a
+table segment changes (``fwdstep.run.crossings``) and keeps the solver's order.
 
 Each block's equation lives in one module-level kernel (``output`` / ``derivative`` in the
 form of docs/writing-blocks.md: ``kernel(t, x, u_1, ..., u_k, p_1, ..., p_m, s_1, ...)``),
@@ -92,6 +97,56 @@ def lookup_output(t, x, u, breakpoints, values, linear_extrapolation):
     return (y,)
 
 
+# ----------------------------------------------------------------------------- guards
+# The zero-crossing functions (state events): (B, m) arrays whose sign changes mark a
+# regime change; continuous along a step (docs/writing-blocks.md).
+def _flat(a):
+    return np.ascontiguousarray(a).reshape((a.shape[0], -1))
+
+
+def interval_guards(u, lower, upper):
+    """u - lower, then u - upper, per element (Saturation, DeadZone)."""
+    uf = _flat(u)
+    return np.concatenate((uf - _flat(lower), uf - _flat(upper)), axis=1)
+
+
+def rate_limiter_guards(x, u, time_constant, rising, falling):
+    """r - rising, then r + falling, with r = (u - x) / T the unclipped rate."""
+    r = (_flat(u) - x) / time_constant
+    return np.concatenate((r - rising, r + falling), axis=1)
+
+
+def lookup_guards(u, breakpoints):
+    """u_i - b_j for every breakpoint j (name b_j), per element i."""
+    uf = _flat(u)
+    return (uf[:, None, :] - breakpoints[:, :, None]).reshape(
+        (max(uf.shape[0], breakpoints.shape[0]), -1))
+
+
+def relay_output(t, x, u, on_value, off_value, on_threshold, off_threshold, scalar):
+    """y = on_value where the relay is on (its state x = 1), else off_value."""
+    if scalar:
+        return (np.where(x[:, 0] > 0.5, on_value[:, 0], off_value[:, 0]),)
+    return (np.where(x > 0.5, on_value, off_value),)
+
+
+def relay_derivative(t, x, u, on_value, off_value, on_threshold, off_threshold, scalar):
+    """The relay's state changes only at its crossings: x' = 0."""
+    return np.zeros(x.shape)
+
+
+def relay_guards(x, u, on_threshold, off_threshold):
+    """Off: u - on_threshold (switches on when it reaches 0); on: u - off_threshold
+    (switches off when it falls below 0).  Continuous while the state is held."""
+    uf = _flat(u)
+    return np.where(x > 0.5, uf - off_threshold, uf - on_threshold)
+
+
+def stop_output(t, x, u):
+    """No outputs: the Stop block only has a zero-crossing function."""
+    return ()
+
+
 # ----------------------------------------------------------------------------- helpers
 def _shape(block: Block, value) -> tuple:
     arr = np.atleast_1d(np.asarray([] if value is None else value, dtype=float))
@@ -141,9 +196,17 @@ def _declare_interval(block: Block, lower, upper, shape, kernel) -> None:
     block.set_param("lower", lo)
     block.set_param("upper", hi)
     block.set_kernels(output=kernel, params=("lower", "upper"))
+    block.declare_zero_crossings(("lower", "upper"), int(np.prod(shape, dtype=np.int64)))
+
+
+class _Interval(Block):
+    """Saturation and DeadZone: guards u - lower and u - upper."""
+
+    def zero_crossings(self, t, x, u):
+        return interval_guards(u[0], self.p.lower, self.p.upper)
 
 @register
-class Saturation(Block):
+class Saturation(_Interval):
     """Saturation: each element clipped to [lower, upper] (e.g. a torque limit).
 
     Equation: y_i = min(max(u_i, lower_i), upper_i).
@@ -177,7 +240,7 @@ class Saturation(Block):
 
 
 @register
-class DeadZone(Block):
+class DeadZone(_Interval):
     """DeadZone: zero output inside [lower, upper], shifted input outside (per element).
 
     Equation: y_i = u_i - upper_i if u_i > upper_i; 0 if lower_i <= u_i <= upper_i;
@@ -263,6 +326,11 @@ class RateLimiter(Block):
         out = rate_limiter_output_scalar if shape == () else rate_limiter_output_vector
         self.set_kernels(output=out, derivative=rate_limiter_derivative,
                          params=("time_constant", "rising", "falling"))
+        self.declare_zero_crossings(("rising", "falling"), size)
+
+    def zero_crossings(self, t, x, u):
+        return rate_limiter_guards(x, u[0], self.p.time_constant, self.p.rising,
+                                   self.p.falling)
 
     def state_eigenvalues(self):
         """Inside the rate limits x' = (u - x) / T: every element's eigenvalue is -1/T (the
@@ -319,6 +387,11 @@ class Friction(Block):
         self.set_param("velocity_scale", np.full(1, velocity_scale))
         self.set_kernels(output=friction_output,
                          params=("coulomb", "viscous", "velocity_scale"))
+        if velocity_scale == 0:               # the sign: a jump where qdot_i crosses 0
+            self.declare_zero_crossings(("qdot",), n)
+
+    def zero_crossings(self, t, x, u):
+        return _flat(u[0])
 
 
 @register
@@ -361,6 +434,11 @@ class Switch(Block):
         else:
             kernel = switch_output_scalar1 if len(shape) == 1 else switch_output_scalar2
         self.set_kernels(output=kernel, params=("threshold",))
+        self.declare_zero_crossings(("control",), int(np.prod(shape, dtype=np.int64))
+                                    if per_element else 1)
+
+    def zero_crossings(self, t, x, u):
+        return _flat(u[1]) - self.p.threshold.reshape((self.p.threshold.shape[0], 1))
 
 
 @register
@@ -414,3 +492,219 @@ class Lookup1D(Block):
         self.set_param("values", v)
         self.set_kernels(output=lookup_output, params=("breakpoints", "values"),
                          static=(extrapolation == "linear",))
+        self.declare_zero_crossings(tuple(f"b{j}" for j in range(bp.size)), n)
+
+    def zero_crossings(self, t, x, u):
+        return lookup_guards(u[0], self.p.breakpoints)
+
+
+@register
+class Relay(Block):
+    """Relay: an on/off switch with hysteresis (e.g. a bang-bang heater, a thermostat).
+
+    Equation: the relay turns on when u reaches on_threshold and off when u falls to
+    off_threshold (off_threshold <= on_threshold); y = on_value while on, off_value while
+    off, per element.  Its on/off state is a state of the block, changed only at the
+    located crossings (the guard is u - on_threshold while off, u - off_threshold while
+    on), so every Runge-Kutta stage of a step sees one regime.  At t = 0 it is on where
+    u(0) >= on_threshold.
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | u    | in        | shape | -           |
+        | y    | out       | shape | -           |
+
+    Parameters:
+        on_threshold: input level that switches the relay on (default 0).
+        off_threshold: input level that switches it off (<= on_threshold; default 0).
+        on_value: output while on (default 1).
+        off_value: output while off (default 0).
+        shape: signal shape ([] scalar or [n]; default scalar).
+    """
+
+    params = {
+        "on_threshold": Param("float", 0.0, "switch on when u reaches it"),
+        "off_threshold": Param("float", 0.0, "switch off when u falls to it"),
+        "on_value": Param("float", 1.0, "output while on"),
+        "off_value": Param("float", 0.0, "output while off"),
+        "shape": Param("array", None, "signal shape, [] or [n]"),
+    }
+    example = {"on_threshold": 0.5, "off_threshold": -0.5, "on_value": 2.0,
+               "off_value": -1.0, "shape": [2]}
+    init_from_inputs = True
+
+    def setup(self, on_threshold, off_threshold, on_value, off_value, shape):
+        shape = _shape(self, shape)
+        if len(shape) > 1:
+            raise ParameterError(f"block '{self.name}' shape must be [] or [n], got "
+                                 f"{list(shape)}", block=self.name)
+        if off_threshold > on_threshold:
+            raise ParameterError(f"block '{self.name}' parameter 'off_threshold' "
+                                 f"({off_threshold:g}) must not exceed 'on_threshold' "
+                                 f"({on_threshold:g})", block=self.name)
+        size = shape[0] if shape else 1
+        self.declare_input("u", shape)
+        self.declare_output("y", shape, feedthrough=())
+        self.declare_state(size, 0.0)
+        for key, value in (("on_value", on_value), ("off_value", off_value),
+                           ("on_threshold", on_threshold), ("off_threshold", off_threshold)):
+            self.set_param(key, [value])
+        self.set_kernels(output=relay_output, derivative=relay_derivative,
+                         params=("on_value", "off_value", "on_threshold", "off_threshold"),
+                         static=(shape == (),))
+        self.declare_zero_crossings(("switch",), size)
+
+    def initial_state(self, t0, u):
+        return (_flat(u[0]) >= self.p.on_threshold).astype(float)
+
+    def zero_crossings(self, t, x, u):
+        return relay_guards(x, u[0], self.p.on_threshold, self.p.off_threshold)
+
+    def crossed(self, t, x, u, which):
+        return np.where(which, 1.0 - x, x)
+
+
+@register
+class Stop(Block):
+    """Stop: ends the run when its input crosses zero (either way, or one direction).
+
+    The crossing is located in time like every zero crossing (docs/writing-blocks.md); the
+    run then ends there with status "stopped", its last record at that time, and the time
+    in the message (e.g. stop when a tracking error settles: wire |e| - tolerance).
+
+    Ports:
+        | port | direction | shape | feedthrough |
+        | u    | in        | shape | -           |
+
+    Parameters:
+        shape: input shape ([] scalar or [n]; any element crossing stops; default scalar).
+    """
+
+    params = {"shape": Param("array", None, "input shape, [] or [n]")}
+    example = {"shape": [2]}
+    stops_run = True
+
+    def setup(self, shape):
+        shape = _shape(self, shape)
+        self.declare_input("u", shape)
+        self.set_kernels(output=stop_output)
+        self.declare_zero_crossings(("u",), int(np.prod(shape, dtype=np.int64)) if shape else 1)
+
+    def zero_crossings(self, t, x, u):
+        return _flat(u[0])
+
+
+# ----------------------------------------------------------------------------- limited integrator
+def limited_integrator_output(t, x, u, reset, value, lower, upper, n, scalar):
+    """y = the integral (the first n states)."""
+    if scalar:
+        return (x[:, 0].copy(),)
+    return (x[:, :n].copy(),)
+
+
+def limited_integrator_derivative(t, x, u, reset, value, lower, upper, n, scalar):
+    """x' = u while free (mode 0), 0 while held at a limit (mode -1 lower, +1 upper)."""
+    uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
+    dx = np.zeros(x.shape)
+    dx[:, :n] = np.where(x[:, n:] == 0.0, uf, 0.0)
+    return dx
+
+
+def limited_integrator_guards(x, u, reset, lower, upper, n):
+    """lower: x - lower while free, u while held there (leaves when u turns positive);
+    upper: upper - x while free, -u while held there; reset: the reset input."""
+    xi, m = x[:, :n], x[:, n:]
+    uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
+    rf = np.ascontiguousarray(reset).reshape((reset.shape[0], n))
+    g_lo = np.where(m < 0, uf, xi - lower)
+    g_hi = np.where(m > 0, -uf, upper - xi)
+    B = max(g_lo.shape[0], g_hi.shape[0], rf.shape[0])
+    return np.concatenate((np.broadcast_to(g_lo, (B, n)), np.broadcast_to(g_hi, (B, n)),
+                           np.broadcast_to(rf, (B, n))), axis=1)
+
+
+@register
+class LimitedIntegrator(Block):
+    """LimitedIntegrator: an integrator held between limits, with a reset input.
+
+    Equation: x' = u while lower < x < upper; at a limit x stays there (x' = 0) until u
+    points back inside (anti-windup; Simulink's limited Integrator).  When ``reset``
+    crosses zero rising, x jumps to the input ``value`` (then clipped to the limits), e.g.
+    a bouncing ball's velocity v <- -e v at impact.  Reaching a limit, leaving it and the
+    reset are zero crossings located in time (docs/writing-blocks.md): the state stops
+    exactly at the limit.  Its state is x followed by one mode per element (0 free, -1 at
+    lower, +1 at upper).
+
+    Ports:
+        | port  | direction | shape | feedthrough |
+        | u     | in        | shape | -           |
+        | reset | in        | shape | -           |
+        | value | in        | shape | -           |
+        | y     | out       | shape | -           |
+
+    ``reset`` and ``value`` are optional (unconnected: zeros, i.e. no reset).
+
+    Parameters:
+        lower: lower limit (number or per element; default -inf).
+        upper: upper limit (number or per element; default +inf).
+        initial: x(0) (within the limits; default 0).
+        shape: signal shape ([] scalar or [n]; default scalar).
+    """
+
+    params = {
+        "lower": Param("array", None, "lower limit (default -inf)"),
+        "upper": Param("array", None, "upper limit (default +inf)"),
+        "initial": Param("array", 0.0, "initial value x(0)"),
+        "shape": Param("array", None, "signal shape, [] or [n]"),
+    }
+    example = {"lower": -1.0, "upper": [1.0, 2.0], "initial": 0.5, "shape": [2]}
+
+    def setup(self, lower, upper, initial, shape):
+        shape = _shape(self, shape)
+        if len(shape) > 1:
+            raise ParameterError(f"block '{self.name}' shape must be [] or [n], got "
+                                 f"{list(shape)}", block=self.name)
+        n = shape[0] if shape else 1
+        flat = (n,)
+        lo = _per_element(self, "lower", -np.inf if lower is None else lower, flat)
+        hi = _per_element(self, "upper", np.inf if upper is None else upper, flat)
+        x0 = _per_element(self, "initial", initial, flat)
+        if np.any(lo > hi) or np.any(x0 < lo) or np.any(x0 > hi):
+            raise ParameterError(f"block '{self.name}' needs lower <= initial <= upper, got "
+                                 f"{lo.tolist()}, {x0.tolist()}, {hi.tolist()}",
+                                 block=self.name)
+        for port in ("u", "reset", "value"):
+            self.declare_input(port, shape, optional=port != "u")
+        self.declare_output("y", shape, feedthrough=())
+        self.declare_state(2 * n, np.concatenate((x0, np.zeros(n))))
+        self.state_labels = [f"x[{i}]" for i in range(n)] + [f"mode[{i}]" for i in range(n)]
+        self.set_param("lower", lo)
+        self.set_param("upper", hi)
+        self._n = n
+        self.set_kernels(output=limited_integrator_output,
+                         derivative=limited_integrator_derivative,
+                         params=("lower", "upper"), static=(n, shape == ()))
+        self.declare_zero_crossings(("lower", "upper", "reset"), n)
+
+    def zero_crossings(self, t, x, u):
+        return limited_integrator_guards(x, u[0], u[1], self.p.lower, self.p.upper, self._n)
+
+    def crossed(self, t, x, u, which):
+        n = self._n
+        xi, m = x[:, :n].copy(), x[:, n:].copy()
+        lo, hi = self.p.lower, self.p.upper
+        lo_b, hi_b = np.broadcast_to(lo, xi.shape), np.broadcast_to(hi, xi.shape)
+        w_lo, w_hi, w_reset = which[:, :n], which[:, n:2 * n], which[:, 2 * n:]
+        hit_lo = w_lo & (m == 0)                 # reached the lower limit: held there
+        hit_hi = w_hi & (m == 0)
+        left = (w_lo & (m < 0)) | (w_hi & (m > 0))       # u points back inside: free
+        xi = np.where(hit_lo, lo_b, np.where(hit_hi, hi_b, xi))
+        m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
+        r = np.ascontiguousarray(u[1]).reshape((u[1].shape[0], n))
+        fire = w_reset & (r >= 0)                # the reset rises through zero
+        if fire.any():
+            v = np.ascontiguousarray(u[2]).reshape((u[2].shape[0], n))
+            new = np.minimum(np.maximum(v, lo_b), hi_b)
+            xi = np.where(fire, new, xi)
+            m = np.where(fire, 0.0, m)
+        return np.concatenate((xi, m), axis=1)

@@ -159,6 +159,8 @@ class Block:
         self.n_states = 0
         self.x0 = np.zeros((1, 0))
         self.state_labels: list[str] | None = None
+        self.crossing_names: tuple = ()         # declare_zero_crossings
+        self.n_crossings = 0
         self.p = SimpleNamespace()
         values = self._check_params(params)
         self.values = values
@@ -298,6 +300,32 @@ class Block:
         an attribute set in ``setup``, outside ``p``, so that variants with other times never
         share a batch (one batch, one grid).  docs/discrete-time.md."""
         return _NO_TIMES
+
+    # ------------------------------------------------------------------ state events
+    #: True for a block whose located crossing ends the run (``Stop``: status "stopped")
+    stops_run: ClassVar[bool] = False
+
+    def declare_zero_crossings(self, names, size: int = 1) -> None:
+        """Declare zero-crossing functions (state events): ``names`` (one per function,
+        e.g. ("lower", "upper")), each with ``size`` elements; ``zero_crossings`` returns
+        them as (B, len(names) * size), name by name.  docs/writing-blocks.md."""
+        self.crossing_names = tuple(names)
+        self.crossing_size = int(size)
+        self.n_crossings = len(self.crossing_names) * self.crossing_size
+
+    def zero_crossings(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
+        """The guard values g (B, n_crossings) at (t, x, u): a regime change (a limit
+        reached, a switch flipping, a reset) happens where some g_j changes sign.  They
+        must be continuous along a step (use the mode held in ``x``, never a regime
+        recomputed from u).  A fixed-step run locates the crossing in time (to 1e-12 s),
+        ends the step there, calls ``crossed`` and goes on (``fwdstep.run.crossings``)."""
+        return np.zeros((x.shape[0], 0))
+
+    def crossed(self, t: float, x: np.ndarray, u: tuple, which: np.ndarray):
+        """At a located crossing (t just past it): the block's new state (B, n_states) (a
+        new mode, a reset, a clamp), or None when it keeps its state.  ``which`` (B,
+        n_crossings, bool): the guards that changed sign."""
+        return None
 
     def update(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
         """Discrete blocks (``discrete = True``) only: the block's new state ``(B, n_states)``

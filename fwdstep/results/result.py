@@ -24,7 +24,8 @@ class Result:
     """
 
     def __init__(self, t, signals: dict, diagram=None, status: str = "ok", message: str = "",
-                 wall_time: float = 0.0, steps: int = 0, diverged_at=None, reasons=None):
+                 wall_time: float = 0.0, steps: int = 0, diverged_at=None, reasons=None,
+                 events=None, notes=None):
         self.t = t
         self._signals = signals
         self.diagram = diagram
@@ -38,6 +39,9 @@ class Result:
         #: forward sensitivities (``fwdstep.sensitivities``): {"signals": name -> (rows,
         #: size, P), "parameters": [(text, first column, end column, shape)]}, else None
         self.sensitivity_data = None
+        #: located zero crossings: (time, block, kind, variant) (fwdstep.run.crossings)
+        self.events = list(events or [])
+        self.notes = list(notes or [])        # one line each (chattering, a fallback)
 
     def __repr__(self) -> str:
         """One line: status (and why), time range, samples, signals with their shapes."""

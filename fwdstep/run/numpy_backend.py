@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from fwdstep.run import finite
+from fwdstep.run import crossings
+from fwdstep.run.crossings import Crossings, crossing_steps
 from fwdstep.run.events import apply_updates
 from fwdstep.run.program import build_program
 from fwdstep.run.backend import Backend
@@ -35,9 +37,13 @@ class NumpyBackend(Backend):
             alloc = disk_allocator(log_dir)
         unlogged = finite.unlogged_signals(d)     # checked at every record (fwdstep.run.finite)
         probe = (unlogged, finite.probe_buffer(d, unlogged)) if unlogged else None
-        sampled = tuple(plan.sampled_signals) if plan is not None else ()
+        steps = crossing_steps(d)
+        sampled = tuple(sorted(set(plan.sampled_signals if plan is not None else ())
+                               | {i for st in steps for i in st.inputs}))
         self.prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled,
-                                  probe=probe)
+                                  probe=probe, crossings=steps)
+        self.crossings = Crossings(d, steps) if steps else None
+        self.fresh = None            # (what, ts[, row]): the stage 1 the last end pass made
         self.check = finite.OutputCheck(d, *probe) if probe else None
         #: the state at every record (``simulate(record_states=True)``), else None
         self.states = (np.full((n_rows, d.batch, d.n_states), np.nan) if record_states
@@ -49,7 +55,10 @@ class NumpyBackend(Backend):
 
     def advance(self, out) -> None:
         """Steps ``position`` .. up to CHUNK more, each the procedure of
-        ``fwdstep.run.simulate`` (split where it touches a declared discontinuity)."""
+        ``fwdstep.run.simulate`` (split where it touches a declared discontinuity; with
+        zero-crossing functions, also where a guard changes sign: ``fwdstep.run.crossings``)."""
+        if self.crossings is not None:
+            return crossings.advance(self, out)
         prog, x, h, every, bound = self.prog, self.x, self.h, self.every, self.bound
         special = self.plan.steps if self.plan is not None else {}
         first, first_record, rest = prog.first, prog.first_record, prog.rest

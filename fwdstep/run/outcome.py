@@ -46,6 +46,8 @@ class Outcome:
         self.blamed = None          # the states (array) or the block name (str) at fault
         self.fail_time = None       # a state's divergence: the time its step ended
         self.rows = None            # rows to keep, when the failure decides them
+        self.events: list = []      # located zero crossings (fwdstep.run.crossings)
+        self.notes: list = []       # one line each: what the run did that a user should know
 
     @property
     def running(self) -> bool:
@@ -100,6 +102,15 @@ class Outcome:
         self.stop(status, message, blamed=blamed, rows=rows)
         return True
 
+    def event(self, event) -> None:
+        """A located state event (``fwdstep.run.crossings.CrossingEvent``)."""
+        self.events.append(event)
+
+    def note(self, line: str) -> None:
+        """Something the user should know, said once (chattering, a fallback)."""
+        if line not in self.notes:
+            self.notes.append(line)
+
     def stop(self, status: str, message: str, blamed=None, time=None, rows=None,
              error=None) -> None:
         self.status, self.message, self.blamed = status, message, blamed
@@ -143,7 +154,8 @@ class Outcome:
                     L[t_out >= died_at[b], b] = np.nan
         result = Result(t=t_out, signals=signals, diagram=d, status=status, message=message,
                         wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
-                        diverged_at=died_at, reasons=self.reasons)
+                        diverged_at=died_at, reasons=self.reasons, events=self.events,
+                        notes=self.notes)
         if status == "diverged" and isinstance(blamed, str):     # a block output, not a state
             raise DivergenceError(message, time=float(t_out[-1]), block=blamed or None,
                                   result=result)

@@ -84,6 +84,7 @@ class Program:
     rest_h: object = None
     sample_signals: object = None
     k: np.ndarray | None = None    # the stage derivatives k_i, (s, B, N); first_ts fills k[0]
+    G: np.ndarray | None = None    # zero-crossing guards at the last stage 1 (``crossings``)
 
 
 class _Source:
@@ -116,14 +117,16 @@ class _Source:
 
 
 def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple = (),
-                  solver: str | None = None, probe=None) -> Program:
+                  solver: str | None = None, probe=None, crossings: tuple = ()) -> Program:
     """Generate the run functions of compiled diagram ``d`` with ``n_rows`` log rows.
     ``alloc(shape)`` makes each log array (default: in memory, NaN-filled;
     ``fwdstep.core.budgets.disk_allocator`` streams the log to disk).  ``sampled``: the signal
     indices ``sample_signals(ts)`` returns (inputs of discrete blocks, fwdstep.run.events).
     ``solver``: the tableau, if not ``simulation.solver`` (fwdstep.run.ivp uses stage 1 only).
     ``probe``: (signal indices, (B, total size) buffer): every record also copies those
-    signals into the buffer (``fwdstep.run.finite`` checks the unrecorded outputs there)."""
+    signals into the buffer (``fwdstep.run.finite`` checks the unrecorded outputs there).
+    ``crossings``: compiled steps of blocks with zero-crossing functions; every stage 1 (and
+    final pass) writes their guards into ``Program.G`` (``fwdstep.run.crossings``)."""
     cfg = d.spec.simulation
     tab = TABLEAUX[solver or cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -323,7 +326,15 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             src.emit(1, line)
         src.emit(0, "")
 
-    stage1 = ["ts = t"] + output_pass(xn)
+    G = np.zeros((B, sum(st.block.n_crossings for st in crossings)))
+    guards, c = [], 0
+    for st in crossings:
+        m = st.block.n_crossings
+        fn = src.const("zc", st.block.zero_crossings)
+        guards.append(src.copy("g", G[:, c:c + m], f"{fn}(ts, {state_view(xn, st.state)}, "
+                                                    f"{args(st.inputs)})"))
+        c += m
+    stage1 = ["ts = t"] + output_pass(xn) + guards
     function("def first(t):", stage1 + derivative_pass(xn, 0))
     function("def first_record(t, row):", stage1 + record + derivative_pass(xn, 0))
     def stage_state(coeffs, scale: str) -> list:
@@ -379,7 +390,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                    first_record=ns["first_record"], rest=ns["rest"], final=ns["final"],
                    plan=plan, source=source, first_ts=ns["first_ts"],
                    first_record_ts=ns["first_record_ts"], final_ts=ns["final_ts"],
-                   rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"), k=K)
+                   rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"), k=K, G=G)
 
 
 class _GroupBuffers:

@@ -1,0 +1,268 @@
+"""Exact state events on a fixed step: zero crossings located in time.
+
+Blocks declare guard functions next to their kernels (``Block.zero_crossings``; e.g. a
+Saturation's ``u - lower`` and ``u - upper``): a regime changes where a guard changes sign.
+Every stage 1 of the generated program writes the guards into ``Program.G``.  A (sub-)step
+[a, b] of a diagram with guards runs as::
+
+    stage 1 at (a, x_a): outputs, k_1, guards g(a)           (FSAL: the previous step's end pass)
+    x_b = the step of size b - a;  stage 1 at (b, x_b): g(b)   (the next step's stage 1)
+    if some g_j changed sign:
+        tau = the earliest root in (0, b - a] of the guards that changed, found on the
+              step itself: g(tau) is the guard after a step of size tau from (a, x_a) (the
+              solver's own map, so the crossing lies exactly on the computed trajectory);
+              secant proposals, bisection when one side stays twice, to CROSSING_TOL s
+        x = the step of size tau (just past the root: the guard has its new sign)
+        blocks whose guards changed: ``crossed(t, x, u, which)`` (a new mode, a reset);
+        the event is listed (``Result.events``); a Stop block ends the run there
+        go on from a + tau to b (a crossing is a step boundary: no stage straddles it)
+
+so a piecewise-smooth right-hand side keeps the method's order.  A guard that crosses more
+than ``CHATTER`` times within one grid step chatters (a sliding mode, stiction): that is
+reported once, and its block's crossings are no longer located (its regime then follows its
+guards at step boundaries).  Steps without a crossing cost one comparison of the guards'
+signs; the end pass is the next step's stage 1 (and record), so nothing is evaluated twice.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fwdstep.run.events import apply_updates
+
+#: the located crossing time is within this of the exact root of the computed trajectory
+CROSSING_TOL = 1e-13
+#: more crossings of one block within one grid step than this: chattering
+CHATTER = 8
+
+
+@dataclass(frozen=True)
+class CrossingEvent:
+    """One located crossing: ``time`` (s), ``block`` (name), ``kind`` (guard name and
+    direction, e.g. 'upper rising', or 'chattering'), ``variant`` (of a batch)."""
+    time: float
+    block: str
+    kind: str
+    variant: int = 0
+
+
+def crossing_steps(d) -> tuple:
+    """The compiled steps of blocks with zero-crossing functions, in schedule order."""
+    return tuple(st for st in d.schedule if st.block.n_crossings)
+
+
+class Crossings:
+    """The guards of one run: columns of ``Program.G`` per block, which are still located
+    (``active``), and the crossings of the current grid step (chattering)."""
+
+    def __init__(self, d, steps):
+        self.steps = steps
+        self.cols = []
+        c = 0
+        for st in steps:
+            self.cols.append(slice(c, c + st.block.n_crossings))
+            c += st.block.n_crossings
+        self.active = np.ones((d.batch, c), dtype=bool)
+        self.count = np.zeros(len(steps), dtype=np.int64)
+        self.quiet = [False] * len(steps)
+
+
+def advance(bk, out) -> None:
+    """``NumpyBackend.advance`` for a diagram with zero-crossing functions: steps
+    ``bk.position`` .. up to CHUNK more, each as in the module docstring."""
+    from fwdstep.run.numpy_backend import CHUNK
+    prog, x, h, every, bound = bk.prog, bk.x, bk.h, bk.every, bk.bound
+    zc: Crossings = bk.crossings
+    G, K0 = prog.G, prog.k[0]
+    special = bk.plan.steps if bk.plan is not None else {}
+    check, alive = bk.check, out.alive
+    B, N = x.shape
+    n0 = bk.position
+    n1 = min(n0 + CHUNK, bk.n_steps)
+    row, n, t = bk.row, bk.n, bk.t
+    try:
+        for n in range(n0, n1):
+            t = n * h
+            zc.count[:] = 0
+            # (sub-)steps (a, b, size, lo, hi, event), sized as the plain loop sizes them
+            units = ([(s.a, s.b, s.b - s.a, s.lo, s.hi, s.event) for s in special[n]]
+                     if n in special else [(t, (n + 1) * h, h, -math.inf, math.inf, None)])
+            for i, (a, b, H, lo, hi, event) in enumerate(units):
+                if event is not None:
+                    apply_updates(event, max(a, lo), x, prog.sample_signals)
+                    bk.fresh = None
+                t_rec = t if i == 0 and n % every == 0 else None
+                if t_rec is not None and bk.fresh == ("rec", max(a, lo), row - 1):
+                    t_rec = None              # recorded by the previous step's end pass
+                ta = a
+                while True:
+                    ts = max(ta, lo)
+                    if t_rec is not None:
+                        prog.first_record_ts(t_rec, ts, row)
+                        row += 1
+                        t_rec = None
+                    elif bk.fresh is None or bk.fresh[1] != ts:
+                        prog.first_ts(ts)
+                    bk.fresh = None
+                    _follow_inactive(bk, ts)
+                    G0, K0a, x0 = G.copy(), K0.copy(), x.copy()
+                    if ta != a:
+                        H = b - ta                # the rest of the step after a crossing
+                    if not H > 0:
+                        break
+                    prog.rest_h(ta, H, lo, hi)
+                    # the end pass: the next (sub-)step's stage 1 when it starts here, with
+                    # its record if it records (kept only if nothing crossed)
+                    te = min(b, hi)
+                    last = i == len(units) - 1
+                    nxt = n + 1
+                    rec_next = (last and nxt < bk.n_steps and nxt % every == 0
+                                and nxt not in special)
+                    if rec_next:
+                        prog.first_record_ts(nxt * h, te, row)
+                    else:
+                        prog.first_ts(te)
+                    changed = ((G >= 0) != (G0 >= 0)) & zc.active
+                    if not changed.any():
+                        if rec_next:
+                            row += 1
+                            bk.fresh = ("rec", te, row - 1)
+                        else:
+                            bk.fresh = ("ts", te)
+                        break
+                    tau = _locate(prog, x, K0, G, x0, K0a, G0, zc.active, ta, H, lo, hi)
+                    ta = ta + tau
+                    if _crossed(bk, out, ta, min(ta, hi), G0):
+                        prog.first_record_ts(ta, min(ta, hi), row)     # a Stop: the last
+                        row += 1                                       # record, there
+                        return
+                    if not ta < b:
+                        bk.fresh = None
+                        break
+            if N:
+                if not np.abs(x).max() <= bound:                 # (NaN fails it too)
+                    if out.states_diverged(x, t + h):
+                        return
+                    x[~alive] = 0.0
+                    zc.active[~alive] = False
+                    bk.fresh = None
+            if check is not None and n % every == 0:
+                if out.output_check(prog.t_log, prog.logs, row - 1, check):
+                    return
+                if not alive.all():
+                    x[~alive] = 0.0
+                    zc.active[~alive] = False
+                    bk.fresh = None
+        bk.position = n1
+        bk.done = n1 >= bk.n_steps
+        bk.fraction = n1 / max(bk.n_steps, 1)
+    finally:
+        bk.row, bk.n, bk.t = row, n, t
+
+
+def _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi) -> float:
+    """The step size tau in (0, H] just past the earliest sign change of an active guard
+    along the computed trajectory from (ta, x0); leaves x at the step of size tau."""
+    s0 = G0 >= 0
+
+    def at(tau):
+        x[...] = x0
+        K0[...] = K0a
+        prog.rest_h(ta, tau, lo, hi)
+        prog.first_ts(min(ta + tau, hi))
+        return G.copy()
+
+    tl, gl = 0.0, G0
+    th, gh, xh = H, G.copy(), x.copy()
+    tol = max(CROSSING_TOL, 4 * math.ulp(ta + H))
+    kept = 0                                   # +k: the lower end moved k times in a row
+    for _ in range(200):
+        if th - tl <= tol:
+            break
+        ch = ((gl >= 0) != (gh >= 0)) & active
+        if abs(kept) >= 2 or not ch.any():
+            p = 0.5 * (tl + th)
+        else:
+            a, b = gl[ch], gh[ch]
+            p = float(np.min(tl + (th - tl) * (a / (a - b))))
+        p = min(max(p, tl + 0.25 * tol), th - 0.25 * tol)
+        gp = at(p)
+        if (((gp >= 0) != s0) & active).any():
+            th, gh, xh = p, gp, x.copy()
+            kept = kept - 1 if kept < 0 else -1
+        else:
+            tl, gl = p, gp
+            kept = kept + 1 if kept > 0 else 1
+    x[...] = xh
+    return th
+
+
+def _crossed(bk, out, te: float, ts: float, G0) -> bool:
+    """At te, just past a located crossing: the guards' new signs, each crossing block's
+    ``crossed``, the events listed, chattering and Stop handled.  True: the run ends."""
+    prog, x, zc = bk.prog, bk.x, bk.crossings
+    sig = prog.sample_signals(ts)              # outputs and guards at (ts, x)
+    G = prog.G
+    changed = ((G >= 0) != (G0 >= 0)) & zc.active
+    for k, (st, cols) in enumerate(zip(zc.steps, zc.cols)):
+        which = changed[:, cols]
+        rows = which.any(axis=1)
+        if not rows.any():
+            continue
+        blk = st.block
+        u = tuple(sig[i] for i in st.inputs)
+        new = blk.crossed(ts, x[:, st.state] if st.state is not None else x[:, 0:0], u,
+                          which)
+        if new is not None and st.state is not None:
+            x[rows, st.state] = np.broadcast_to(new, (x.shape[0], blk.n_states))[rows]
+        size = blk.crossing_size
+        for b in np.flatnonzero(rows):
+            for j in np.flatnonzero(which[b]):
+                kind = (f"{blk.crossing_names[j // size]}"
+                        f"{'' if size == 1 else f'[{j % size}]'} "
+                        f"{'rising' if G[b, cols][j] >= 0 else 'falling'}")
+                out.event(CrossingEvent(te, blk.name, kind, int(b)))
+        if blk.stops_run:
+            out.stop("stopped", f"stopped by block '{blk.name}' ({blk.type_name}) at "
+                                f"t = {te:.12g}")
+            return True
+        zc.count[k] += 1
+        if zc.count[k] > CHATTER:
+            zc.active[:, cols] = False
+            out.event(CrossingEvent(te, blk.name, "chattering", int(np.flatnonzero(rows)[0])))
+            out.note(f"block '{blk.name}' ({blk.type_name}): its zero crossing recurs more "
+                     f"than {CHATTER} times within one step at t = {te:.6g} (chattering); "
+                     "from there on its crossings are not located, its regime follows at "
+                     "step boundaries")
+            zc.quiet[k] = True
+    bk.fresh = None
+    return False
+
+
+def _follow_inactive(bk, ts: float) -> None:
+    """Blocks whose crossings are no longer located (chattering): their regime follows the
+    guards' signs at each step boundary (``crossed`` without location)."""
+    zc = bk.crossings
+    if not any(zc.quiet):
+        return
+    prog, x = bk.prog, bk.x
+    prev = getattr(bk, "_quiet_signs", None)
+    now = prog.G >= 0
+    bk._quiet_signs = now.copy()
+    if prev is None:
+        return
+    changed = (now != prev) & ~zc.active
+    if not changed.any():
+        return
+    sig = prog.sample_signals(ts)
+    for st, cols, quiet in zip(zc.steps, zc.cols, zc.quiet):
+        which = changed[:, cols]
+        if quiet and which.any() and st.state is not None:
+            new = st.block.crossed(ts, x[:, st.state], tuple(sig[i] for i in st.inputs), which)
+            if new is not None:
+                rows = which.any(axis=1)
+                x[rows, st.state] = np.broadcast_to(new, (x.shape[0], st.block.n_states))[rows]
+    prog.first_ts(ts)
+    bk._quiet_signs = prog.G >= 0
