@@ -71,8 +71,7 @@ class Crossings:
 
 def advance(bk, out) -> None:
     """``NumpyBackend.advance`` for a diagram with zero-crossing functions: steps
-    ``bk.position`` .. up to CHUNK more, each as in the module docstring."""
-    from fwdstep.run.numpy_backend import CHUNK
+    ``bk.position`` .. up to ``bk.chunk`` more, each as in the module docstring."""
     prog, x, h, every, bound = bk.prog, bk.x, bk.h, bk.every, bk.bound
     zc: Crossings = bk.crossings
     G, K0 = prog.G, prog.k[0]
@@ -80,7 +79,7 @@ def advance(bk, out) -> None:
     check, alive = bk.check, out.alive
     B, N = x.shape
     n0 = bk.position
-    n1 = min(n0 + CHUNK, bk.n_steps)
+    n1 = min(n0 + bk.chunk, bk.n_steps)
     row, n, t = bk.row, bk.n, bk.t
     try:
         for n in range(n0, n1):

@@ -24,6 +24,8 @@ CHUNK = 2048
 
 
 class NumpyBackend(Backend):
+    chunk = CHUNK
+
     def __init__(self, d, plan, fuse: bool = True, log_dir: str | None = None,
                  record_states: bool = False):
         super().__init__(d, plan)
