@@ -387,11 +387,11 @@ class Friction(Block):
         self.set_param("velocity_scale", np.full(1, velocity_scale))
         self.set_kernels(output=friction_output,
                          params=("coulomb", "viscous", "velocity_scale"))
-        if velocity_scale == 0:               # the sign: a jump where qdot_i crosses 0
-            self.declare_zero_crossings(("qdot",), n)
+        # the sign (velocity_scale 0) jumps where qdot_i crosses 0 (tanh: no guard, +1)
+        self.declare_zero_crossings(("qdot",), n)
 
     def zero_crossings(self, t, x, u):
-        return _flat(u[0])
+        return np.where(self.p.velocity_scale[:, None] > 0.0, 1.0, _flat(u[0]))
 
 
 @register

@@ -204,6 +204,8 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
     else:
         if progress is not None:
             progress.finish(_reached(result, d))
+    for note in result.notes:
+        _err(f"note: {note}")
     try:
         with signals.deferred():                  # a signal now: the results still land
             written = result.write_files(out.dir, record)
@@ -221,6 +223,8 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         m = result.metrics()
         reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
         line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"
+        if result.status == "stopped":
+            line += f" ({result.message})"
         if m and m.get("final_error_norm") is not None:     # names: fwdstep.results.result
             line += (f"; final |e|_2 = {m['final_error_norm']:.3e}; over the last "
                      f"{int(100 * d.spec.metrics.get('tail', 0.2))}%: max |e|_2 = "

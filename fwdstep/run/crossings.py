@@ -65,7 +65,7 @@ class Crossings:
             self.cols.append(slice(c, c + st.block.n_crossings))
             c += st.block.n_crossings
         self.active = np.ones((d.batch, c), dtype=bool)
-        self.count = np.zeros(len(steps), dtype=np.int64)
+        self.count = np.zeros((d.batch, len(steps)), dtype=np.int64)   # this grid step
         self.quiet = [False] * len(steps)
 
 
@@ -74,7 +74,6 @@ def advance(bk, out) -> None:
     ``bk.position`` .. up to ``bk.chunk`` more, each as in the module docstring."""
     prog, x, h, every, bound = bk.prog, bk.x, bk.h, bk.every, bk.bound
     zc: Crossings = bk.crossings
-    G, K0 = prog.G, prog.k[0]
     special = bk.plan.steps if bk.plan is not None else {}
     check, alive = bk.check, out.alive
     B, N = x.shape
@@ -92,54 +91,33 @@ def advance(bk, out) -> None:
                 if event is not None:
                     apply_updates(event, max(a, lo), x, prog.sample_signals)
                     bk.fresh = None
-                t_rec = t if i == 0 and n % every == 0 else None
-                if t_rec is not None and bk.fresh == ("rec", max(a, lo), row - 1):
-                    t_rec = None              # recorded by the previous step's end pass
-                ta = a
-                while True:
-                    ts = max(ta, lo)
-                    if t_rec is not None:
-                        prog.first_record_ts(t_rec, ts, row)
+                ts = max(a, lo)
+                if i == 0 and n % every == 0:
+                    if bk.fresh != ("rec", ts, row - 1):   # else: the previous end pass
+                        prog.first_record_ts(t, ts, row)
                         row += 1
-                        t_rec = None
-                    elif bk.fresh is None or bk.fresh[1] != ts:
-                        prog.first_ts(ts)
-                    bk.fresh = None
-                    _follow_inactive(bk, ts)
-                    G0, K0a, x0 = G.copy(), K0.copy(), x.copy()
-                    if ta != a:
-                        H = b - ta                # the rest of the step after a crossing
-                    if not H > 0:
-                        break
-                    prog.rest_h(ta, H, lo, hi)
-                    # the end pass: the next (sub-)step's stage 1 when it starts here, with
-                    # its record if it records (kept only if nothing crossed)
-                    te = min(b, hi)
-                    last = i == len(units) - 1
-                    nxt = n + 1
-                    rec_next = (last and nxt < bk.n_steps and nxt % every == 0
-                                and nxt not in special)
+                elif bk.fresh is None or bk.fresh[1] != ts:
+                    prog.first_ts(ts)
+                bk.fresh = None
+                _follow_inactive(bk, ts)
+                # the end pass: the next step's stage 1 (and record) when it starts here
+                nxt = n + 1
+                rec_next = (i == len(units) - 1 and nxt < bk.n_steps and nxt % every == 0
+                            and nxt not in special)
+                end = (nxt * h, row) if rec_next else None
+                crossed = _unit(bk, out, a, b, H, lo, hi, end)
+                if not out.running:
+                    if bk.stop_at is not None:         # a Stop: the last record, there
+                        te, tse = bk.stop_at
+                        prog.first_record_ts(te, tse, row)
+                        row += 1
+                    return
+                if not crossed:
                     if rec_next:
-                        prog.first_record_ts(nxt * h, te, row)
+                        row += 1
+                        bk.fresh = ("rec", min(b, hi), row - 1)
                     else:
-                        prog.first_ts(te)
-                    changed = ((G >= 0) != (G0 >= 0)) & zc.active
-                    if not changed.any():
-                        if rec_next:
-                            row += 1
-                            bk.fresh = ("rec", te, row - 1)
-                        else:
-                            bk.fresh = ("ts", te)
-                        break
-                    tau = _locate(prog, x, K0, G, x0, K0a, G0, zc.active, ta, H, lo, hi)
-                    ta = ta + tau
-                    if _crossed(bk, out, ta, min(ta, hi), G0):
-                        prog.first_record_ts(ta, min(ta, hi), row)     # a Stop: the last
-                        row += 1                                       # record, there
-                        return
-                    if not ta < b:
-                        bk.fresh = None
-                        break
+                        bk.fresh = ("ts", min(b, hi))
             if N:
                 if not np.abs(x).max() <= bound:                 # (NaN fails it too)
                     if out.states_diverged(x, t + h):
@@ -161,9 +139,80 @@ def advance(bk, out) -> None:
         bk.row, bk.n, bk.t = row, n, t
 
 
+def _unit(bk, out, a, b, H, lo, hi, end) -> bool:
+    """The (sub-)step [a, b] of size H from the stage 1 just made at a; ``end``: (time,
+    row) of the record the end pass makes, or None.  Returns whether a guard crossed (the
+    stage 1 at b is then not the end pass's: the next step makes its own).
+
+    In a batch each crossing variant is located on its own (the others' rows of those
+    re-steps are dropped), so every variant has its own crossings and the numbers of its
+    run alone; the variants that did not cross keep the full step."""
+    prog, x, zc = bk.prog, bk.x, bk.crossings
+    G, K0 = prog.G, prog.k[0]
+    G0, K0a, x0 = G.copy(), K0.copy(), x.copy()
+    if not H > 0:
+        return False
+    _step(prog, a, H, lo, hi, b, end)
+    changed = ((G >= 0) != (G0 >= 0)) & zc.active
+    if not changed.any():
+        return False
+    B = x.shape[0]
+    if B == 1:
+        _located(bk, out, a, b, H, lo, hi, x0, K0a, G0, zc.active)
+        return True
+    x_full, G_full = x.copy(), G.copy()
+    own = {}
+    for v in np.flatnonzero(changed.any(axis=1)):
+        x[...] = x_full
+        G[...] = G_full
+        mask = np.zeros_like(zc.active)
+        mask[v] = True
+        _located(bk, out, a, b, H, lo, hi, x0, K0a, G0, zc.active & mask)
+        if not out.running:
+            return True
+        own[v] = x[v].copy()
+    x[...] = x_full
+    for v, xv in own.items():
+        x[v] = xv
+    return True
+
+
+def _step(prog, a, H, lo, hi, b, end) -> None:
+    """x <- the step of size H from (a, x) (stage 1 made), then stage 1 at its end."""
+    prog.rest_h(a, H, lo, hi)
+    if end is not None:
+        prog.first_record_ts(end[0], min(b, hi), end[1])
+    else:
+        prog.first_ts(min(b, hi))
+
+
+def _located(bk, out, a, b, H, lo, hi, x0, K0a, G0, active) -> None:
+    """From (a, x0) to b, every crossing of the ``active`` guards located and acted on;
+    x and G hold the step of size H from (a, x0) (which crossed)."""
+    prog, x = bk.prog, bk.x
+    G, K0 = prog.G, prog.k[0]
+    ta = a
+    while True:
+        tau = _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi)
+        ta = ta + tau
+        if _crossed(bk, out, ta, min(ta, hi), G0, active):
+            bk.stop_at = (ta, min(ta, hi))
+            return
+        if not ta < b:
+            return
+        prog.first_ts(max(ta, lo))                 # go on from the crossing, new side
+        _follow_inactive(bk, max(ta, lo))
+        G0, K0a, x0 = G.copy(), K0.copy(), x.copy()
+        H = b - ta
+        _step(prog, ta, H, lo, hi, b, None)
+        if not (((G >= 0) != (G0 >= 0)) & active).any():
+            return
+
+
 def _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi) -> float:
     """The step size tau in (0, H] just past the earliest sign change of an active guard
-    along the computed trajectory from (ta, x0); leaves x at the step of size tau."""
+    along the computed trajectory from (ta, x0), where x and G hold the step of size H;
+    leaves x at the step of size tau."""
     s0 = G0 >= 0
 
     def at(tau):
@@ -198,13 +247,13 @@ def _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi) -> float:
     return th
 
 
-def _crossed(bk, out, te: float, ts: float, G0) -> bool:
+def _crossed(bk, out, te: float, ts: float, G0, active) -> bool:
     """At te, just past a located crossing: the guards' new signs, each crossing block's
     ``crossed``, the events listed, chattering and Stop handled.  True: the run ends."""
     prog, x, zc = bk.prog, bk.x, bk.crossings
     sig = prog.sample_signals(ts)              # outputs and guards at (ts, x)
     G = prog.G
-    changed = ((G >= 0) != (G0 >= 0)) & zc.active
+    changed = ((G >= 0) != (G0 >= 0)) & active
     for k, (st, cols) in enumerate(zip(zc.steps, zc.cols)):
         which = changed[:, cols]
         rows = which.any(axis=1)
@@ -227,10 +276,12 @@ def _crossed(bk, out, te: float, ts: float, G0) -> bool:
             out.stop("stopped", f"stopped by block '{blk.name}' ({blk.type_name}) at "
                                 f"t = {te:.12g}")
             return True
-        zc.count[k] += 1
-        if zc.count[k] > CHATTER:
-            zc.active[:, cols] = False
-            out.event(CrossingEvent(te, blk.name, "chattering", int(np.flatnonzero(rows)[0])))
+        zc.count[rows, k] += 1
+        chatter = rows & (zc.count[:, k] > CHATTER)
+        if chatter.any():
+            zc.active[chatter, cols] = False
+            for b in np.flatnonzero(chatter):
+                out.event(CrossingEvent(te, blk.name, "chattering", int(b)))
             out.note(f"block '{blk.name}' ({blk.type_name}): its zero crossing recurs more "
                      f"than {CHATTER} times within one step at t = {te:.6g} (chattering); "
                      "from there on its crossings are not located, its regime follows at "

@@ -46,6 +46,7 @@ class NumpyBackend(Backend):
                                   probe=probe, crossings=steps)
         self.crossings = Crossings(d, steps) if steps else None
         self.fresh = None            # (what, ts[, row]): the stage 1 the last end pass made
+        self.stop_at = None          # (t, stage time) where a Stop block ended the run
         self.check = finite.OutputCheck(d, *probe) if probe else None
         #: the state at every record (``simulate(record_states=True)``), else None
         self.states = (np.full((n_rows, d.batch, d.n_states), np.nan) if record_states

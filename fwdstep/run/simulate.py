@@ -48,12 +48,14 @@ import time as _time
 
 import numpy as np
 
+from fwdstep.core.block import Block
 from fwdstep.core.errors import ConfigError, DiagramError, SimulationError
 from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS
 from fwdstep.results.result import Result
 from fwdstep.run import finite
 from fwdstep.run.backend import Backend
+from fwdstep.run.crossings import crossing_steps
 from fwdstep.run.evaluate import check_shapes, initial_state
 from fwdstep.run.events import plan_events
 from fwdstep.run.outcome import Outcome, SimulationInterrupted  # noqa: F401 - SimulationInterrupted: public name
@@ -90,13 +92,15 @@ class _Progress:
 
 
 def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
-        wall0: float | None = None) -> Result:
+        wall0: float | None = None, notes: tuple = ()) -> Result:
     """The run loop, for every backend: initial state, advance until t_final (progress about
     once a second; a single run whose recorded outputs went NaN/inf stops there), the
     updates and record at t_final; every ending decided by one ``Outcome``."""
     cfg = d.spec.simulation
     wall0 = _time.perf_counter() if wall0 is None else wall0
     out = Outcome(d)
+    for line in notes:
+        out.note(line)
     tick = backend.tick = _Progress(progress, wall0)
     plan = backend.plan
     single = d.batch == 1
@@ -195,6 +199,21 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
         raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}")
     wall0 = _time.perf_counter()
     plan = plan_events(d, cfg.step, cfg.n_steps)
+    notes = []
+    located = crossing_steps(d)
+    if located and cfg.solver in IVP_METHODS:
+        acting = [st.block for st in located if st.block.stops_run
+                  or type(st.block).crossed is not Block.crossed]
+        if acting:
+            blk = acting[0]
+            raise ConfigError(f"solver '{cfg.solver}' does not locate zero crossings, which "
+                              f"block '{blk.name}' ({blk.type_name}) acts on; use a "
+                              "fixed-step solver (rk4)", file=d.file, block=blk.name)
+    if located and name == "compiled" and cfg.solver not in IVP_METHODS:
+        blk = located[0].block
+        notes.append(f"block '{blk.name}' ({blk.type_name}) has zero crossings, which the "
+                     "compiled backend does not locate: this run uses the numpy backend")
+        name = "numpy"
     if cfg.solver in IVP_METHODS:
         from fwdstep.run.ivp import IvpBackend
         stepper = IvpBackend(d, plan)
@@ -204,7 +223,7 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
                                record_states=record_states)
     else:
         stepper = _plugged(name, d).CompiledBackend(d, plan)
-    result = run(d, stepper, progress, x0, wall0)
+    result = run(d, stepper, progress, x0, wall0, notes)
     if record_states:
         result.states = stepper.states[:len(result.t)]
     return result

@@ -26,7 +26,9 @@ structure signature (``fwdstep.structure.compiler.structure_signature``: shapes,
 non-numeric parameters, and everything a block computed in ``setup`` outside ``p``).
 Fixed-step solvers batch, on the NumPy backend or the compiled one (``--backend compiled``:
 ``fwdstep.compiled.backend_numba`` runs a batch's variants in parallel threads; one process by
-default); an adaptive solver runs one variant per batch.  A variant that diverges is frozen and marked while the rest of its batch goes on;
+default); an adaptive solver, or a diagram with a Stop block (which ends a whole batch's
+run), runs one variant per batch.  Zero crossings are located per variant in a batch
+(``fwdstep.run.crossings``): each variant keeps the numbers of its run alone.  A variant that diverges is frozen and marked while the rest of its batch goes on;
 if a block raises inside a batch, that batch is re-run variant by variant.
 
 **Memory.**  A batch's size is bounded by what it really logs: the bytes of the logged error
@@ -331,7 +333,8 @@ def plan_batches(specs, blocks, metric, *, sequential=False, workers=1,
     groups: dict = {}
     memo: dict = {}
     for i, (spec, blks) in enumerate(zip(specs, blocks)):
-        if sequential or not batchable(spec):
+        # a Stop block ends a whole batch's run: those variants run one by one
+        if sequential or not batchable(spec) or any(b.stops_run for b in blks):
             groups[("alone", i)] = [i]
             continue
         groups.setdefault((settings_key(spec, memo), structure_signature(blks)), []).append(i)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import fwdstep
+import fwdstep.run.numpy_backend  # noqa: F401 - patched below
 import fwdstep.run.program as program
 from fwdstep.structure.compiler import compile_batch, compile_spec
 from fwdstep.structure.spec import load_spec
@@ -73,7 +74,7 @@ def test_a_large_batch_takes_the_pair_copies_and_keeps_every_bit(monkeypatch):
             prog = build(*args, **kwargs)
             seen.append(prog.source)
             return prog
-        monkeypatch.setattr(sys.modules["fwdstep.run.simulate"], "build_program", spy)
+        monkeypatch.setattr(sys.modules["fwdstep.run.numpy_backend"], "build_program", spy)
         d = compile_batch(specs)
         d.logged = [d.resolve("e.y"), d.resolve("tau.y")]
         runs.append((fwdstep.simulate(d), seen[0]))

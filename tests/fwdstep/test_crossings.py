@@ -1,0 +1,196 @@
+"""Exact state events (fwdstep.run.crossings, issue 26): zero crossings located in time.
+
+Every reference here is analytic: a saturated decay whose kink time is known in closed
+form, a bouncing ball's apex heights e^(2k) h0, a relay's triangle wave, an anti-windup
+integrator of sin t.  A kink integrated through costs RK4 its order (2.1 measured before);
+located, the order stays 4.
+"""
+import math
+
+import numpy as np
+import pytest
+
+import fwdstep
+from fwdstep.core.errors import ConfigError
+
+
+def _run(tmp_path, text, name="d.yaml", **kw):
+    path = tmp_path / name
+    path.write_text(text)
+    return fwdstep.simulate(fwdstep.load_diagram(str(path)), **kw)
+
+
+SAT = """
+blocks:
+  sat: {{type: Saturation, lower: -1.0, upper: {upper}}}
+  neg: {{type: Gain, gain: -1.0}}
+  i:   {{type: Integrator, initial: 3.37}}
+connections:
+  - i.y -> sat.u
+  - sat.y -> neg.u
+  - neg.y -> i.u
+simulation: {{t_final: 5.0, step: {h!r}, solver: rk4}}
+"""
+
+
+def test_saturated_decay_keeps_rk4_order(tmp_path):
+    """x' = -sat(x; -1, 1), x(0) = 3.37: x = 3.37 - t until t = 2.37, then e^-(t - 2.37)."""
+    hs = (0.2, 0.1, 0.05)
+    errors = []
+    for h in hs:
+        r = _run(tmp_path, SAT.format(upper=1.0, h=h))
+        exact = np.where(r.t < 2.37, 3.37 - r.t, np.exp(-(r.t - 2.37)))
+        errors.append(np.abs(r["i.y"] - exact).max())
+        assert [(e.block, e.kind) for e in r.events] == [("sat", "upper falling")]
+        assert abs(r.events[0].time - 2.37) < 1e-12
+    order = np.polyfit(np.log(hs), np.log(errors), 1)[0]
+    assert order >= 3.5, (order, errors)
+    assert errors[-1] <= 1e-6
+
+
+def test_no_crossing_costs_no_number(tmp_path):
+    """A Saturation that never saturates gives the numbers of a unit Gain, bit for bit
+    (a step without a crossing is the plain procedure)."""
+    r = _run(tmp_path, SAT.format(upper=100.0, h=0.1).replace("lower: -1.0", "lower: -100.0"),
+             fuse=False)
+    g = _run(tmp_path, SAT.format(upper=1.0, h=0.1).replace(
+        "{type: Saturation, lower: -1.0, upper: 1.0}", "{type: Gain, gain: 1.0}"), "g.yaml",
+        fuse=False)
+    assert r.events == []
+    np.testing.assert_array_equal(r["i.y"], g["i.y"])
+
+
+BALL = """
+blocks:
+  g:    {type: Constant, value: -9.81}
+  v:    {type: LimitedIntegrator, initial: 0.0}
+  p:    {type: Integrator, initial: 10.0}
+  neg:  {type: Gain, gain: -1.0}
+  rest: {type: Gain, gain: -0.8}
+connections:
+  - g.y -> v.u
+  - v.y -> p.u
+  - p.y -> neg.u
+  - neg.y -> v.reset
+  - v.y -> rest.u
+  - rest.y -> v.value
+simulation: {t_final: 13.0, step: 0.01, solver: rk4}
+"""
+
+
+def test_bouncing_ball_apex_heights(tmp_path):
+    """Restitution 0.8 from 10 m: the apex after bounce k is 0.64^k * 10 m.  Between
+    bounces p + v^2 / 2g is the apex height (energy), read at every recorded step."""
+    r = _run(tmp_path, BALL)
+    bounces = [e.time for e in r.events if e.kind == "reset rising"]
+    assert abs(bounces[0] - math.sqrt(2 * 10 / 9.81)) < 1e-12
+    apex = r["p.y"] + r["v.y"] ** 2 / (2 * 9.81)
+    for k in range(10):
+        flight = (r.t > bounces[k]) & (r.t < bounces[k + 1])
+        assert flight.any()
+        np.testing.assert_allclose(apex[flight], 10 * 0.64 ** (k + 1), rtol=0, atol=1e-9)
+
+
+RELAY = """
+blocks:
+  relay: {type: Relay, on_threshold: 1.0, off_threshold: -1.0, on_value: -1.0,
+          off_value: 1.0}
+  x:     {type: Integrator}
+connections:
+  - x.y -> relay.u
+  - relay.y -> x.u
+simulation: {t_final: 8.1, step: 0.3, solver: rk4}
+"""
+
+
+def test_relay_hysteresis_is_a_triangle_wave(tmp_path):
+    """Off (+1) until x reaches 1, on (-1) until x falls to -1: switches at 1, 3, 5, 7."""
+    r = _run(tmp_path, RELAY)
+    times = [e.time for e in r.events]
+    np.testing.assert_allclose(times, [1.0, 3.0, 5.0, 7.0], rtol=0, atol=1e-12)
+    s = (r.t + 1.0) % 4.0                      # the triangle of period 4 through (0, 0)
+    exact = np.where(s < 2.0, s - 1.0, 3.0 - s)
+    np.testing.assert_allclose(r["x.y"], exact, rtol=0, atol=1e-12)
+
+
+def test_stop_block_ends_the_run_at_the_crossing(tmp_path):
+    r = _run(tmp_path, """
+blocks:
+  one:  {type: Constant, value: -1.0}
+  x:    {type: Integrator, initial: 1.234}
+  stop: {type: Stop}
+connections:
+  - one.y -> x.u
+  - x.y -> stop.u
+simulation: {t_final: 5.0, step: 0.1, solver: rk4}
+""")
+    assert r.status == "stopped"
+    assert abs(r.t[-1] - 1.234) < 1e-12 and abs(r["x.y"][-1]) < 1e-12
+    assert "stopped by block 'stop' (Stop) at t = 1.234" in r.message
+
+
+def test_chattering_is_reported_once(tmp_path):
+    """x' = -sign(x) (a Relay without hysteresis) slides on x = 0 from t = 0.5: one
+    report, one note, and the run goes on (no storm of tiny steps)."""
+    r = _run(tmp_path, """
+blocks:
+  relay: {type: Relay, on_threshold: 0.0, off_threshold: 0.0, on_value: -1.0,
+          off_value: 1.0}
+  x:     {type: Integrator, initial: 0.5}
+connections:
+  - x.y -> relay.u
+  - relay.y -> x.u
+simulation: {t_final: 2.0, step: 0.01, solver: rk4}
+""")
+    assert r.status == "ok"
+    kinds = [e.kind for e in r.events]
+    assert kinds.count("chattering") == 1 and len(kinds) < 20
+    assert abs(r.events[0].time - 0.5) < 1e-12
+    assert len(r.notes) == 1 and "chattering" in r.notes[0] and "'relay' (Relay)" in r.notes[0]
+    assert np.abs(r["x.y"][r.t > 0.6]).max() < 0.02
+
+
+def test_limited_integrator_holds_at_the_limit_and_leaves_when_u_turns(tmp_path):
+    """x' = sin t, x <= 0.5: 1 - cos t until t = pi/3, held at 0.5 until sin t < 0
+    (t = pi), then 0.5 - (1 + cos t)."""
+    r = _run(tmp_path, """
+blocks:
+  s: {type: Sine, amplitude: 1.0, frequency: 1.0}
+  x: {type: LimitedIntegrator, upper: 0.5}
+connections:
+  - s.y -> x.u
+simulation: {t_final: 5.0, step: 0.01, solver: rk4}
+""")
+    t = r.t
+    exact = np.where(t < math.pi / 3, 1 - np.cos(t), np.where(t < math.pi, 0.5,
+                                                                -0.5 - np.cos(t)))
+    np.testing.assert_allclose(r["x.y"], exact, rtol=0, atol=1e-9)
+    assert [e.kind for e in r.events] == ["upper falling", "upper rising"]
+    np.testing.assert_allclose([e.time for e in r.events], [math.pi / 3, math.pi], atol=1e-12)
+
+
+def test_batch_variants_have_their_own_events(tmp_path):
+    path = tmp_path / "b.yaml"
+    path.write_text(SAT.format(upper="U", h=0.05).replace("blocks:", "parameters: {U: 1.0}\nblocks:"))
+    specs = [fwdstep.structure.spec.load_spec(str(path), {"U": u}) for u in (1.0, 2.0)]
+    r = fwdstep.simulate(fwdstep.compile_batch(specs))
+    by = {v: [e.time for e in r.events if e.variant == v] for v in (0, 1)}
+    for v, u in enumerate((1.0, 2.0)):                 # each variant: its run alone
+        alone = fwdstep.simulate(fwdstep.load_diagram(str(path), {"U": u}))
+        np.testing.assert_allclose(r["i.y"][:, v], alone["i.y"], rtol=0, atol=1e-13)
+        assert [e.time for e in alone.events] == by[v]
+    np.testing.assert_allclose(by[0], [2.37], atol=1e-12)
+    np.testing.assert_allclose(by[1], [(3.37 - 2.0) / 2.0], atol=1e-12)   # x' = -2 above 2
+
+
+def test_compiled_backend_falls_back_with_a_note(tmp_path):
+    pytest.importorskip("numba")
+    r = _run(tmp_path, SAT.format(upper=1.0, h=0.1), backend="compiled")
+    n = _run(tmp_path, SAT.format(upper=1.0, h=0.1))
+    assert len(r.notes) == 1 and "numpy backend" in r.notes[0]
+    np.testing.assert_array_equal(r["i.y"], n["i.y"])
+
+
+def test_solve_ivp_refuses_blocks_acting_on_crossings(tmp_path):
+    with pytest.raises(ConfigError, match="does not locate zero crossings.*'relay' \\(Relay\\)"):
+        _run(tmp_path, RELAY.replace("solver: rk4", "solver: dop853"))
