@@ -104,10 +104,12 @@ def _flat(a):
     return np.ascontiguousarray(a).reshape((a.shape[0], -1))
 
 
-def interval_guards(u, lower, upper):
-    """u - lower, then u - upper, per element (Saturation, DeadZone)."""
-    uf = _flat(u)
-    return np.concatenate((uf - _flat(lower), uf - _flat(upper)), axis=1)
+def interval_guards(out, t, x, u, interval):
+    """out <- u - lower, then u - upper, per element (Saturation, DeadZone); ``interval``
+    (B, 2, size): lower and upper flattened."""
+    g = out.view()
+    g.shape = (out.shape[0], 2, interval.shape[2])       # a view (raises if it cannot be)
+    np.subtract(u.reshape((u.shape[0], 1, -1)), interval, out=g)
 
 
 def rate_limiter_guards(x, u, time_constant, rising, falling):
@@ -195,15 +197,14 @@ def _declare_interval(block: Block, lower, upper, shape, kernel) -> None:
     block.declare_output("y", shape, feedthrough=("u",))
     block.set_param("lower", lo)
     block.set_param("upper", hi)
+    block.set_param("interval", np.stack([lo.reshape(-1), hi.reshape(-1)]))   # the guards'
     block.set_kernels(output=kernel, params=("lower", "upper"))
-    block.declare_zero_crossings(("lower", "upper"), int(np.prod(shape, dtype=np.int64)))
+    block.declare_zero_crossings(("lower", "upper"), int(np.prod(shape, dtype=np.int64)),
+                                 kernel=interval_guards, params=("interval",))
 
 
 class _Interval(Block):
-    """Saturation and DeadZone: guards u - lower and u - upper."""
-
-    def zero_crossings(self, t, x, u):
-        return interval_guards(u[0], self.p.lower, self.p.upper)
+    """Saturation and DeadZone: guards u - lower and u - upper (``interval_guards``)."""
 
 @register
 class Saturation(_Interval):

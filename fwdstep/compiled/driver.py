@@ -26,6 +26,8 @@ class CompiledBackend(Backend):
     at them (status 3, ``backend_numba.event_arrays``).  A batch runs its variants in
     parallel, each on its own row of the state, each stopping where it fails."""
 
+    scan_log = False
+
     def __init__(self, d: CompiledDiagram, plan):
         super().__init__(d, plan)
         try:

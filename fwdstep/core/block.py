@@ -305,21 +305,33 @@ class Block:
     #: True for a block whose located crossing ends the run (``Stop``: status "stopped")
     stops_run: ClassVar[bool] = False
 
-    def declare_zero_crossings(self, names, size: int = 1) -> None:
+    def declare_zero_crossings(self, names, size: int = 1, kernel=None,
+                               params: tuple = ()) -> None:
         """Declare zero-crossing functions (state events): ``names`` (one per function,
         e.g. ("lower", "upper")), each with ``size`` elements; ``zero_crossings`` returns
-        them as (B, len(names) * size), name by name.  docs/writing-blocks.md."""
+        them as (B, len(names) * size), name by name.  ``kernel``: optionally, the guards
+        as a kernel ``kernel(out, t, x, u_1, ..., u_k, p_1, ...)`` writing them into
+        ``out`` (B, n) (``params`` name arrays of ``self.p``); ``zero_crossings`` is then
+        that kernel and the run calls it straight into its buffer (no allocation, no
+        method call: the cost of watching guards that never cross).
+        docs/writing-blocks.md."""
         self.crossing_names = tuple(names)
         self.crossing_size = int(size)
         self.n_crossings = len(self.crossing_names) * self.crossing_size
+        self.crossing_kernel = (kernel, tuple(params)) if kernel is not None else None
 
     def zero_crossings(self, t: float, x: np.ndarray, u: tuple) -> np.ndarray:
         """The guard values g (B, n_crossings) at (t, x, u): a regime change (a limit
         reached, a switch flipping, a reset) happens where some g_j changes sign.  They
         must be continuous along a step (use the mode held in ``x``, never a regime
         recomputed from u).  A fixed-step run locates the crossing in time (to 1e-12 s),
-        ends the step there, calls ``crossed`` and goes on (``fwdstep.run.crossings``)."""
-        return np.zeros((x.shape[0], 0))
+        ends the step there, calls ``crossed`` and goes on (``fwdstep.run.crossings``).
+        Default: the declared guard kernel, or no guards."""
+        ck = getattr(self, "crossing_kernel", None)
+        out = np.empty((x.shape[0], self.n_crossings))
+        if ck is not None:
+            ck[0](out, t, x, *u, *(getattr(self.p, n) for n in ck[1]))
+        return out
 
     def crossed(self, t: float, x: np.ndarray, u: tuple, which: np.ndarray):
         """At a located crossing (t just past it): the block's new state (B, n_states) (a

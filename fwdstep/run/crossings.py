@@ -67,6 +67,8 @@ class Crossings:
         self.active = np.ones((d.batch, c), dtype=bool)
         self.count = np.zeros((d.batch, len(steps)), dtype=np.int64)   # this grid step
         self.quiet = [False] * len(steps)
+        self.simple = True          # every guard located, no variant gone: the fast path
+        self.counted = False        # count holds crossings of this grid step
 
 
 def advance(bk, out) -> None:
@@ -80,10 +82,80 @@ def advance(bk, out) -> None:
     n0 = bk.position
     n1 = min(n0 + bk.chunk, bk.n_steps)
     row, n, t = bk.row, bk.n, bk.t
+    G = prog.G
+    x0 = np.empty_like(x)
+    first, first_record, rest, first_ts = prog.first, prog.first_record, prog.rest, prog.first_ts
+    absx = np.empty_like(x)
+    S0, S1, C = (np.empty(G.shape, dtype=bool) for _ in range(3))   # the guards' signs
+    n_steps = bk.n_steps
     try:
         for n in range(n0, n1):
             t = n * h
-            zc.count[:] = 0
+            if zc.counted:
+                zc.count[:] = 0
+                zc.counted = False
+            if n not in special and zc.simple:
+                # the plain procedure (its numbers), with the guards' signs compared at the
+                # end; a step that crossed is taken again, located (_unit)
+                fresh = bk.fresh
+                if n % every == 0:
+                    if fresh is None or fresh[0] != t or fresh[1] != row - 1:
+                        first_record(t, row)
+                        row += 1
+                        np.greater_equal(G, 0.0, out=S0)
+                elif fresh is None or fresh[0] != t:
+                    first(t)
+                    np.greater_equal(G, 0.0, out=S0)
+                bk.fresh = None
+                np.copyto(x0, x)
+                rest(t)
+                nxt = n + 1
+                te = nxt * h
+                rec_next = nxt % every == 0 and nxt < n_steps and nxt not in special
+                if rec_next:
+                    first_record(te, row)
+                else:
+                    first(te)
+                np.greater_equal(G, 0.0, out=S1)
+                np.not_equal(S1, S0, out=C)
+                if C.any():
+                    np.copyto(x, x0)
+                    first_ts(t)                   # stage 1 at t again: k_1, the guards
+                    if _unit(bk, out, t, te, h, -math.inf, math.inf,
+                             (te, row) if rec_next else None):
+                        if not out.running:
+                            row = _stopped(bk, prog, row)
+                            return
+                        bk.fresh = None           # the next step makes its stage 1
+                        S1, S0 = S0, S1
+                        continue_checks = True
+                    else:
+                        continue_checks = False
+                else:
+                    continue_checks = False
+                if not continue_checks:
+                    S1, S0 = S0, S1               # the signs at te: the next step's start
+                    if rec_next:
+                        row += 1
+                        bk.fresh = (te, row - 1)
+                    else:
+                        bk.fresh = (te, -1)
+                if N and not np.abs(x, out=absx).max() <= bound:     # (NaN fails it too)
+                    if out.states_diverged(x, t + h):
+                        return
+                    x[~alive] = 0.0
+                    zc.active[~alive] = False
+                    zc.simple = False
+                    bk.fresh = None
+                if check is not None and n % every == 0:
+                    if out.output_check(prog.t_log, prog.logs, row - 1, check):
+                        return
+                    if not alive.all():
+                        x[~alive] = 0.0
+                        zc.active[~alive] = False
+                        zc.simple = False
+                        bk.fresh = None
+                continue
             # (sub-)steps (a, b, size, lo, hi, event), sized as the plain loop sizes them
             units = ([(s.a, s.b, s.b - s.a, s.lo, s.hi, s.event) for s in special[n]]
                      if n in special else [(t, (n + 1) * h, h, -math.inf, math.inf, None)])
@@ -93,10 +165,10 @@ def advance(bk, out) -> None:
                     bk.fresh = None
                 ts = max(a, lo)
                 if i == 0 and n % every == 0:
-                    if bk.fresh != ("rec", ts, row - 1):   # else: the previous end pass
+                    if bk.fresh != (ts, row - 1):   # else: the previous end pass recorded
                         prog.first_record_ts(t, ts, row)
                         row += 1
-                elif bk.fresh is None or bk.fresh[1] != ts:
+                elif bk.fresh is None or bk.fresh[0] != ts:
                     prog.first_ts(ts)
                 bk.fresh = None
                 _follow_inactive(bk, ts)
@@ -107,23 +179,25 @@ def advance(bk, out) -> None:
                 end = (nxt * h, row) if rec_next else None
                 crossed = _unit(bk, out, a, b, H, lo, hi, end)
                 if not out.running:
-                    if bk.stop_at is not None:         # a Stop: the last record, there
-                        te, tse = bk.stop_at
-                        prog.first_record_ts(te, tse, row)
-                        row += 1
+                    row = _stopped(bk, prog, row)
                     return
-                if not crossed:
+                if crossed:
+                    row = _after_crossing(bk, row)
+                else:
                     if rec_next:
                         row += 1
-                        bk.fresh = ("rec", min(b, hi), row - 1)
+                        bk.fresh = (min(b, hi), row - 1)
                     else:
-                        bk.fresh = ("ts", min(b, hi))
+                        bk.fresh = (min(b, hi), -1)
+            if bk.fresh is not None:              # the signs the next step starts from
+                np.greater_equal(G, 0.0, out=S0)
             if N:
                 if not np.abs(x).max() <= bound:                 # (NaN fails it too)
                     if out.states_diverged(x, t + h):
                         return
                     x[~alive] = 0.0
                     zc.active[~alive] = False
+                    zc.simple = False
                     bk.fresh = None
             if check is not None and n % every == 0:
                 if out.output_check(prog.t_log, prog.logs, row - 1, check):
@@ -131,12 +205,30 @@ def advance(bk, out) -> None:
                 if not alive.all():
                     x[~alive] = 0.0
                     zc.active[~alive] = False
+                    zc.simple = False
                     bk.fresh = None
         bk.position = n1
         bk.done = n1 >= bk.n_steps
         bk.fraction = n1 / max(bk.n_steps, 1)
     finally:
         bk.row, bk.n, bk.t = row, n, t
+
+
+def _stopped(bk, prog, row: int) -> int:
+    """A Stop block ended the run: the last record, at its crossing; the rows."""
+    if bk.stop_at is not None:
+        te, tse = bk.stop_at
+        prog.first_record_ts(te, tse, row)
+        bk.stop_at = None
+        return row + 1
+    return row
+
+
+def _after_crossing(bk, row: int) -> int:
+    """After a (sub-)step that crossed: the stage 1 at its end is made again by the next
+    step (a Stop's record aside, nothing was recorded for it)."""
+    bk.fresh = None
+    return row
 
 
 def _unit(bk, out, a, b, H, lo, hi, end) -> bool:
@@ -277,9 +369,11 @@ def _crossed(bk, out, te: float, ts: float, G0, active) -> bool:
                                 f"t = {te:.12g}")
             return True
         zc.count[rows, k] += 1
+        zc.counted = True
         chatter = rows & (zc.count[:, k] > CHATTER)
         if chatter.any():
             zc.active[chatter, cols] = False
+            zc.simple = False
             for b in np.flatnonzero(chatter):
                 out.event(CrossingEvent(te, blk.name, "chattering", int(b)))
             out.note(f"block '{blk.name}' ({blk.type_name}): its zero crossing recurs more "

@@ -45,7 +45,7 @@ class NumpyBackend(Backend):
         self.prog = build_program(d, n_rows, fuse=fuse, alloc=alloc, sampled=sampled,
                                   probe=probe, crossings=steps)
         self.crossings = Crossings(d, steps) if steps else None
-        self.fresh = None            # (what, ts[, row]): the stage 1 the last end pass made
+        self.fresh = None            # (ts, row or -1): the stage 1 (and record) of the last end pass
         self.stop_at = None          # (t, stage time) where a Stop block ended the run
         self.check = finite.OutputCheck(d, *probe) if probe else None
         #: the state at every record (``simulate(record_states=True)``), else None

@@ -329,10 +329,20 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     G = np.zeros((B, sum(st.block.n_crossings for st in crossings)))
     guards, c = [], 0
     for st in crossings:
-        m = st.block.n_crossings
-        fn = src.const("zc", st.block.zero_crossings)
-        guards.append(src.copy("g", G[:, c:c + m], f"{fn}(ts, {state_view(xn, st.state)}, "
-                                                    f"{args(st.inputs)})"))
+        blk = st.block
+        m = blk.n_crossings
+        ck = getattr(blk, "crossing_kernel", None)
+        if ck is not None and "zero_crossings" not in vars(type(blk)) \
+                and "zero_crossings" not in blk.__dict__:
+            # the guard kernel, straight into its columns of G
+            pars = "".join(", " + src.const("p", getattr(blk.p, n)) for n in ck[1])
+            ins = "".join(", " + read(u) for u in st.inputs)
+            guards.append(f"{src.const('zck', ck[0])}({src.const('g', G[:, c:c + m])}, ts, "
+                          f"{state_view(xn, st.state)}{ins}{pars})")
+        else:
+            fn = src.const("zc", blk.zero_crossings)
+            guards.append(src.copy("g", G[:, c:c + m], f"{fn}(ts, {state_view(xn, st.state)}, "
+                                                        f"{args(st.inputs)})"))
         c += m
     stage1 = ["ts = t"] + output_pass(xn) + guards
     function("def first(t):", stage1 + derivative_pass(xn, 0))

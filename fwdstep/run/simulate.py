@@ -103,7 +103,7 @@ def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
         out.note(line)
     tick = backend.tick = _Progress(progress, wall0)
     plan = backend.plan
-    single = d.batch == 1
+    scan = d.batch == 1 and backend.scan_log
     checked = 0                               # log rows already checked for NaN/inf
     with np.errstate(all="ignore"):
         try:
@@ -114,7 +114,7 @@ def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
             while out.running and not backend.done:
                 backend.advance(out)
                 tick(backend.fraction)
-                if single and out.running:    # an output gone NaN/inf: stop early
+                if scan and out.running:      # an output gone NaN/inf: stop early
                     if not finite.rows_finite(backend.logs, checked, backend.row):
                         break                 # (Outcome.finish says where and what)
                     checked = backend.row
