@@ -567,7 +567,7 @@ class Relay(Block):
 
 @register
 class Stop(Block):
-    """Stop: ends the run when its input crosses zero (either way, or one direction).
+    """Stop: ends the run when its input crosses zero.
 
     The crossing is located in time like every zero crossing (docs/writing-blocks.md); the
     run then ends there with status "stopped", its last record at that time, and the time
