@@ -27,25 +27,36 @@ class AdaptationLaw(Block):
         | e         | in        | (n,)           | -           |
         | theta_hat | out       | (p,) or ()     | -           |
 
+    Projection (the standard robust-adaptive modification): with ``lower`` and/or
+    ``upper``, theta_hat stays in the box lower <= theta_hat <= upper: an entry that
+    reaches a bound stops there (its update is zeroed) until the update points back inside.
+    Reaching and leaving a bound are zero crossings located in time
+    (docs/writing-blocks.md); the state is then theta_hat followed by one mode per entry
+    (0 inside, -1 at lower, +1 at upper).
+
     Parameters:
         regressor_shape: [n, p] for a matrix regressor (estimate of p parameters), or [n]
             for a vector regressor (scalar estimate).
         gamma: adaptation gain Gamma: a positive number, p positive numbers (diagonal), or a
             (p, p) symmetric positive definite matrix; a positive number for [n].
         theta0: initial estimate theta_hat(0): one number for every entry, or p numbers.
+        lower: projection box, lower bound (a number or p numbers; default none).
+        upper: projection box, upper bound (a number or p numbers; default none).
     """
 
     params = {
         "regressor_shape": Param("array", doc="shape of W: [n, p] (matrix) or [n] (vector)"),
         "gamma": Param("array", 1.0, "adaptation gain: scalar, (p,) diagonal or (p, p) SPD"),
         "theta0": Param("array", 0.0, "initial estimate: scalar or (p,)"),
+        "lower": Param("array", None, "projection: lower bound of theta_hat (default none)"),
+        "upper": Param("array", None, "projection: upper bound of theta_hat (default none)"),
     }
     shape_from = {"regressor_shape": ("W",)}
     example = {"regressor_shape": [2, 4], "gamma": [[2.0, 0.5, 0, 0], [0.5, 1.0, 0, 0],
                                                     [0, 0, 1.0, 0], [0, 0, 0, 3.0]],
                "theta0": [1.0, 0.5, 0.2, 0.1]}
 
-    def setup(self, regressor_shape, gamma, theta0):
+    def setup(self, regressor_shape, gamma, theta0, lower=None, upper=None):
         shape = np.atleast_1d(np.asarray(regressor_shape))
         if shape.ndim != 1 or shape.size not in (1, 2) or np.any(shape < 1) \
                 or np.any(shape != np.floor(shape)):
@@ -99,13 +110,36 @@ class AdaptationLaw(Block):
         self.declare_input("e", (n,))
         self.declare_output("theta_hat", () if self._vector else (p,), feedthrough=(),
                             label=r"$\hat\theta$")
-        self.declare_state(p, t0)
-        self.state_labels = ["theta_hat"] if self._vector else \
-            [f"theta_hat[{k}]" for k in range(p)]
+        self._p = p
+        self._box = lower is not None or upper is not None
+        labels = ["theta_hat"] if self._vector else [f"theta_hat[{k}]" for k in range(p)]
+        if self._box:
+            lo = np.broadcast_to(np.asarray(-np.inf if lower is None else lower, dtype=float),
+                                 (p,))
+            hi = np.broadcast_to(np.asarray(np.inf if upper is None else upper, dtype=float),
+                                 (p,))
+            if np.any(lo > hi) or np.any(t0 < lo) or np.any(t0 > hi):
+                raise ParameterError(f"block {self.name!r} needs lower <= theta0 <= upper, got "
+                                     f"{lo.tolist()}, {t0.tolist()}, {hi.tolist()}",
+                                     block=self.name)
+            self.set_param("lower", lo)
+            self.set_param("upper", hi)
+            self.declare_state(2 * p, np.concatenate((t0, np.zeros(p))))
+            self.state_labels = labels + [f"mode[{k}]" for k in range(p)]
+            self.declare_zero_crossings(("lower", "upper"), p)
+        else:
+            self.declare_state(p, t0)
+            self.state_labels = labels
         self.finalize(1)
 
     def finalize(self, batch: int) -> None:
-        if self._vector:
+        if self._box:
+            kind = 0 if self._vector else (2 if self._matrix_gain else 1)
+            gain = "gamma_T" if self._matrix_gain else "gamma"
+            self.set_kernels(output=adaptation_box_output, derivative=adaptation_box_derivative,
+                             params=(gain, "lower", "upper"),
+                             static=(self._p, kind))
+        elif self._vector:
             self.set_kernels(output=adaptation_scalar_output,
                              derivative=adaptation_vector_derivative, params=("gamma",))
         elif self._matrix_gain:
@@ -114,6 +148,35 @@ class AdaptationLaw(Block):
         else:
             self.set_kernels(output=adaptation_output, derivative=adaptation_derivative,
                              params=("gamma",))
+
+
+    def _update(self, t, x, u):
+        """The unprojected theta_hat' (B, p)."""
+        gain = self.p.gamma_T if self._matrix_gain else self.p.gamma
+        kind = 0 if self._vector else (2 if self._matrix_gain else 1)
+        return _base_update(t, x[:, :self._p], u[0], u[1], gain, kind)
+
+    def zero_crossings(self, t, x, u):
+        """lower: theta - lower while inside, the update while held there (leaves when it
+        turns positive); upper: upper - theta while inside, -update while held there."""
+        p = self._p
+        th, m = x[:, :p], x[:, p:]
+        upd = self._update(t, x, u)
+        g_lo = np.where(m < 0, upd, th - self.p.lower)
+        g_hi = np.where(m > 0, -upd, self.p.upper - th)
+        return np.concatenate((g_lo, g_hi), axis=1)
+
+    def crossed(self, t, x, u, which):
+        p = self._p
+        th, m = x[:, :p].copy(), x[:, p:].copy()
+        lo = np.broadcast_to(self.p.lower, th.shape)
+        hi = np.broadcast_to(self.p.upper, th.shape)
+        w_lo, w_hi = which[:, :p], which[:, p:]
+        hit_lo, hit_hi = w_lo & (m == 0), w_hi & (m == 0)
+        left = (w_lo & (m < 0)) | (w_hi & (m > 0))
+        th = np.where(hit_lo, lo, np.where(hit_hi, hi, th))
+        m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
+        return np.concatenate((th, m), axis=1)
 
 
 # ---------------------------------------------------------------- kernels (one definition)
@@ -147,3 +210,28 @@ def adaptation_derivative(t, x, W, e, gamma):
 def adaptation_matrix_derivative(t, x, W, e, gamma_T):
     """theta_hat' = -Gamma W^T e (symmetric positive definite gain)."""
     return _like_state(-ko.bvecmat(ko.bvecmat(e, W), gamma_T), x)
+
+
+def _base_update(t, x, W, e, gain, kind):
+    """The law's theta_hat' for the estimates x (B, p): kind 0 scalar, 1 diagonal, 2 matrix."""
+    if kind == 0:
+        return adaptation_vector_derivative(t, x, W, e, gain)
+    if kind == 1:
+        return adaptation_derivative(t, x, W, e, gain)
+    return adaptation_matrix_derivative(t, x, W, e, gain)
+
+
+def adaptation_box_output(t, x, W, e, gain, lower, upper, p, kind):
+    """theta_hat = the first p states (the estimates; the modes follow)."""
+    if kind == 0:
+        return (x[:, 0].copy(),)
+    return (x[:, :p].copy(),)
+
+
+def adaptation_box_derivative(t, x, W, e, gain, lower, upper, p, kind):
+    """theta_hat' = the law's update where the entry is inside the box (mode 0), 0 where it
+    is held at a bound; the modes change only at crossings."""
+    upd = _base_update(t, x[:, :p], W, e, gain, kind)
+    dx = np.zeros(x.shape)
+    dx[:, :p] = np.where(x[:, p:] == 0.0, upd, 0.0)
+    return dx

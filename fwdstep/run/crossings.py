@@ -88,6 +88,19 @@ def advance(bk, out) -> None:
     absx = np.empty_like(x)
     S0, S1, C = (np.empty(G.shape, dtype=bool) for _ in range(3))   # the guards' signs
     n_steps = bk.n_steps
+
+    def failed() -> bool:
+        """After a record (row - 1): the unrecorded outputs; True: the run ends."""
+        if check is None:
+            return False
+        if out.output_check(prog.t_log, prog.logs, row - 1, check):
+            return True
+        if not alive.all():
+            x[~alive] = 0.0
+            zc.active[~alive] = False
+            zc.simple = False
+            bk.fresh = None
+        return False
     try:
         for n in range(n0, n1):
             t = n * h
@@ -102,6 +115,8 @@ def advance(bk, out) -> None:
                     if fresh is None or fresh[0] != t or fresh[1] != row - 1:
                         first_record(t, row)
                         row += 1
+                        if failed():
+                            return
                         np.greater_equal(G, 0.0, out=S0)
                 elif fresh is None or fresh[0] != t:
                     first(t)
@@ -118,7 +133,7 @@ def advance(bk, out) -> None:
                     first(te)
                 np.greater_equal(G, 0.0, out=S1)
                 np.not_equal(S1, S0, out=C)
-                if C.any():
+                if C.any() and (C & np.isfinite(G)).any():   # (NaN/inf: divergence's)
                     np.copyto(x, x0)
                     first_ts(t)                   # stage 1 at t again: k_1, the guards
                     if _unit(bk, out, t, te, h, -math.inf, math.inf,
@@ -133,11 +148,15 @@ def advance(bk, out) -> None:
                         continue_checks = False
                 else:
                     continue_checks = False
+                if nxt in special:                # its first sub-step checks for jumps
+                    bk.last_signs = G >= 0
                 if not continue_checks:
                     S1, S0 = S0, S1               # the signs at te: the next step's start
                     if rec_next:
                         row += 1
                         bk.fresh = (te, row - 1)
+                        if failed():
+                            return
                     else:
                         bk.fresh = (te, -1)
                 if N and not np.abs(x, out=absx).max() <= bound:     # (NaN fails it too)
@@ -147,14 +166,6 @@ def advance(bk, out) -> None:
                     zc.active[~alive] = False
                     zc.simple = False
                     bk.fresh = None
-                if check is not None and n % every == 0:
-                    if out.output_check(prog.t_log, prog.logs, row - 1, check):
-                        return
-                    if not alive.all():
-                        x[~alive] = 0.0
-                        zc.active[~alive] = False
-                        zc.simple = False
-                        bk.fresh = None
                 continue
             # (sub-)steps (a, b, size, lo, hi, event), sized as the plain loop sizes them
             units = ([(s.a, s.b, s.b - s.a, s.lo, s.hi, s.event) for s in special[n]]
@@ -164,14 +175,22 @@ def advance(bk, out) -> None:
                     apply_updates(event, max(a, lo), x, prog.sample_signals)
                     bk.fresh = None
                 ts = max(a, lo)
-                if i == 0 and n % every == 0:
+                rec = i == 0 and n % every == 0
+                if rec:
                     if bk.fresh != (ts, row - 1):   # else: the previous end pass recorded
                         prog.first_record_ts(t, ts, row)
                         row += 1
+                        if failed():
+                            return
                 elif bk.fresh is None or bk.fresh[0] != ts:
                     prog.first_ts(ts)
                 bk.fresh = None
                 _follow_inactive(bk, ts)
+                if bk.last_signs is not None:     # a guard that jumped between (sub-)steps
+                    if _jumps(bk, out, t if rec else None, ts, row - 1):
+                        row = _stopped(bk, prog, row)
+                        return
+                    bk.last_signs = None
                 # the end pass: the next step's stage 1 (and record) when it starts here
                 nxt = n + 1
                 rec_next = (i == len(units) - 1 and nxt < bk.n_steps and nxt % every == 0
@@ -181,28 +200,23 @@ def advance(bk, out) -> None:
                 if not out.running:
                     row = _stopped(bk, prog, row)
                     return
-                if crossed:
-                    row = _after_crossing(bk, row)
+                if crossed:                       # the stage 1 at the end, made again
+                    prog.first_ts(min(b, hi))
+                    bk.fresh = (min(b, hi), -1)
+                elif rec_next:
+                    row += 1
+                    bk.fresh = (min(b, hi), row - 1)
+                    if failed():
+                        return
                 else:
-                    if rec_next:
-                        row += 1
-                        bk.fresh = (min(b, hi), row - 1)
-                    else:
-                        bk.fresh = (min(b, hi), -1)
+                    bk.fresh = (min(b, hi), -1)
+                bk.last_signs = G >= 0            # where the next (sub-)step starts from
             if bk.fresh is not None:              # the signs the next step starts from
                 np.greater_equal(G, 0.0, out=S0)
             if N:
                 if not np.abs(x).max() <= bound:                 # (NaN fails it too)
                     if out.states_diverged(x, t + h):
                         return
-                    x[~alive] = 0.0
-                    zc.active[~alive] = False
-                    zc.simple = False
-                    bk.fresh = None
-            if check is not None and n % every == 0:
-                if out.output_check(prog.t_log, prog.logs, row - 1, check):
-                    return
-                if not alive.all():
                     x[~alive] = 0.0
                     zc.active[~alive] = False
                     zc.simple = False
@@ -222,6 +236,26 @@ def _stopped(bk, prog, row: int) -> int:
         bk.stop_at = None
         return row + 1
     return row
+
+
+def _jumps(bk, out, t_rec, ts: float, rec_row: int) -> bool:
+    """At the start (ts) of a (sub-)step: guards whose sign differs from the end of the
+    previous one jumped there (a Step, a discrete update): their blocks' ``crossed`` is
+    applied at ts (nothing to locate) and the stage 1 (and record) made again.  True: a
+    Stop ended the run."""
+    prog, zc = bk.prog, bk.crossings
+    G = prog.G
+    changed = ((G >= 0) != bk.last_signs) & zc.active
+    if not changed.any():
+        return False
+    if _crossed(bk, out, ts, ts, np.where(bk.last_signs, 1.0, -1.0), zc.active):
+        bk.stop_at = (ts, ts)
+        return True
+    if t_rec is not None:
+        prog.first_record_ts(t_rec, ts, rec_row)
+    else:
+        prog.first_ts(ts)
+    return False
 
 
 def _after_crossing(bk, row: int) -> int:
@@ -245,7 +279,7 @@ def _unit(bk, out, a, b, H, lo, hi, end) -> bool:
     if not H > 0:
         return False
     _step(prog, a, H, lo, hi, b, end)
-    changed = ((G >= 0) != (G0 >= 0)) & zc.active
+    changed = ((G >= 0) != (G0 >= 0)) & zc.active & np.isfinite(G) & np.isfinite(G0)
     if not changed.any():
         return False
     B = x.shape[0]

@@ -47,6 +47,7 @@ class NumpyBackend(Backend):
         self.crossings = Crossings(d, steps) if steps else None
         self.fresh = None            # (ts, row or -1): the stage 1 (and record) of the last end pass
         self.stop_at = None          # (t, stage time) where a Stop block ended the run
+        self.last_signs = None       # the guards' signs at the end of the last (sub-)step
         self.check = finite.OutputCheck(d, *probe) if probe else None
         #: the state at every record (``simulate(record_states=True)``), else None
         self.states = (np.full((n_rows, d.batch, d.n_states), np.nan) if record_states

@@ -194,3 +194,25 @@ def test_compiled_backend_falls_back_with_a_note(tmp_path):
 def test_solve_ivp_refuses_blocks_acting_on_crossings(tmp_path):
     with pytest.raises(ConfigError, match="does not locate zero crossings.*'relay' \\(Relay\\)"):
         _run(tmp_path, RELAY.replace("solver: rk4", "solver: dop853"))
+
+
+def test_adaptation_law_projection_keeps_the_estimate_in_its_box(tmp_path):
+    """theta' = -gamma W e with W = 1, e = -1 (then +1 from t = 1): theta = 2 t up to the
+    bound 0.5 (t = 0.25), held there until e turns at t = 1, then 0.5 - 2 (t - 1)."""
+    r = _run(tmp_path, """
+blocks:
+  W:  {type: Constant, value: [1.0]}
+  e:  {type: Step, before: [-1.0], after: [1.0], time: 1.0}
+  th: {type: AdaptationLaw, regressor_shape: [1], gamma: 2.0, theta0: 0.0, upper: 0.5,
+       lower: -0.3}
+connections:
+  - W.y -> th.W
+  - e.y -> th.e
+simulation: {t_final: 1.5, step: 0.03, solver: rk4}
+""")
+    t = r.t
+    exact = np.where(t < 0.25, 2 * t, np.where(t < 1.0, 0.5, np.maximum(0.5 - 2 * (t - 1.0),
+                                                                          -0.3)))
+    np.testing.assert_allclose(r["th.theta_hat"], exact, rtol=0, atol=1e-12)
+    assert [(e.kind, round(e.time, 12)) for e in r.events] == [
+        ("upper falling", 0.25), ("upper rising", 1.0), ("lower falling", 1.4)]
