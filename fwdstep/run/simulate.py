@@ -24,6 +24,12 @@ procedure above.
 Nothing per-run is stored in the diagram or its blocks: all buffers live in this function's
 frame.
 
+Blocks whose regime changes where a signal reaches a level (a limit, a switch, a reset)
+declare zero-crossing functions; a step in which one changes sign is taken again up to the
+crossing (located on the step itself, to 1e-13 s), the block acts there, and the step goes
+on from it (``fwdstep.run.crossings``): no stage straddles the change, RK4 keeps order 4.
+Steps without a crossing run exactly the procedure above.
+
 One run loop (``run`` below) drives every backend through one interface (``Backend``): it
 sets the initial state, asks the backend to advance, reports progress, applies the final
 updates and record, and owns, through ``fwdstep.run.outcome.Outcome``, everything about how a
