@@ -89,8 +89,13 @@ def advance(bk, out) -> None:
     S0, S1, C = (np.empty(G.shape, dtype=bool) for _ in range(3))   # the guards' signs
     n_steps = bk.n_steps
 
+    states = bk.states
+
     def failed() -> bool:
-        """After a record (row - 1): the unrecorded outputs; True: the run ends."""
+        """After a kept record (row - 1): its state (``record_states``) and the unrecorded
+        outputs; True: the run ends."""
+        if states is not None:
+            states[row - 1] = x
         if check is None:
             return False
         if out.output_check(prog.t_log, prog.logs, row - 1, check):
@@ -233,6 +238,8 @@ def _stopped(bk, prog, row: int) -> int:
     if bk.stop_at is not None:
         te, tse = bk.stop_at
         prog.first_record_ts(te, tse, row)
+        if bk.states is not None:
+            bk.states[row] = bk.x
         bk.stop_at = None
         return row + 1
     return row
