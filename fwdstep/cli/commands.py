@@ -2,7 +2,8 @@
 
 Every verb returns an exit code:
   0 success; 2 the diagram, an option or the output directory is wrong (one line on stderr);
-  3 the simulation diverged; 4 a block raised at run time; 128 + signal number when
+  3 the simulation diverged; 4 a block raised at run time; 5 the run stopped at an operating
+  limit (``stop_on_limits``, fwdstep.run.limits); 128 + signal number when
   interrupted: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (``fwdstep.core.signals``).
 Partial results are written before a non-zero exit whenever anything was computed, as one
 transaction into a locked output directory (``fwdstep.results.outputs``).
@@ -13,10 +14,11 @@ import os
 import sys
 
 from fwdstep.core.errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
-                     OutputError, SimulationError, one_line, printable)
+                     LimitExceeded, OutputError, SimulationError, one_line, printable)
 from fwdstep.results.result import RESULT_FILE, SUMMARY_FILE
 
 EXIT_OK, EXIT_INPUT, EXIT_DIVERGED, EXIT_BLOCK, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+EXIT_LIMIT = 5
 
 
 def _err(msg: str) -> None:
@@ -198,6 +200,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         _err(str(exc))
         code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
                 EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else
+                EXIT_LIMIT if isinstance(exc, LimitExceeded) else
                 signals.exit_code(exc))
         if result is None:
             return code
@@ -218,6 +221,9 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         _err(f"{late.reason} while the results were written; they are complete")
         code = code or signals.exit_code(late)
     if not quiet:
+        from fwdstep.run.limits import describe
+        for line in describe(result.limits):
+            print(f"fwdstep: note: {line}", file=sys.stderr)
         m = result.metrics()
         reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
         line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"

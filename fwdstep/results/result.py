@@ -38,6 +38,7 @@ class Result:
         #: forward sensitivities (``fwdstep.sensitivities``): {"signals": name -> (rows,
         #: size, P), "parameters": [(text, first column, end column, shape)]}, else None
         self.sensitivity_data = None
+        self.limits = []     # operating limits reached (fwdstep.run.limits.limit_record)
 
     def __repr__(self) -> str:
         """One line: status (and why), time range, samples, signals with their shapes."""
@@ -170,6 +171,7 @@ class Result:
             "batch": self.batch,
             "wall_time_s": round(self.wall_time, 6),
             "metrics": _jsonable(self.metrics()),
+            **({"limits": _jsonable(self.limits)} if self.limits else {}),
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
             **_figure_summary(self),
         }
@@ -307,6 +309,7 @@ def load_result(outdir: str) -> Result:
                steps=summary.get("steps", 0))
     r.batch = batch
     r.stored = summary
+    r.limits = summary.get("limits") or []
     r.outdir = outdir
     r.signal_labels = summary.get("signal_labels") or {}
     r.figure_panels = {name: [(list(p["signals"]), p.get("scale", "linear")) for p in panels]

@@ -79,7 +79,7 @@ def test_plant_batch_equals_single_runs_and_theta_is_the_inertias():
     for b in range(3):
         np.testing.assert_array_equal(
             batch[b], arm.derivative(0.0, x[b:b + 1], (tau[b:b + 1], np.zeros((1, 6))))[0])
-    q, qdot, theta = arm.output(0.0, x[:1], (tau[:1], np.zeros((1, 6))))
+    q, qdot, theta = arm.output(0.0, x[:1], (tau[:1], np.zeros((1, 6))))[:3]
     np.testing.assert_array_equal(q, x[:1, :6])
     masses = theta[0].reshape(6, 10)[:, 0]
     np.testing.assert_allclose(masses, [model.inertias[j].mass for j in range(1, 7)])
