@@ -628,18 +628,21 @@ class URDFFrame(Block):
     Parameters:
         robot / urdf, locked_joints: the robot (see ``URDFArm``).
         frame: the frame's name (a URDF link or joint).
+        implementation: 'auto', 'pinocchio' or 'kernels' (the NumPy path's choice).
     """
 
     params = {k: v for k, v in _robot_params().items()
-              if k in ("robot", "urdf", "locked_joints")}
+              if k in ("robot", "urdf", "locked_joints", "implementation")}
     params["frame"] = Param("str", doc="a URDF link or joint name (e.g. tool0, panda_hand)")
     example = {"robot": "ur5", "frame": "tool0"}
     summary = classmethod(_summary_with_hint)
-    compile_with = "traced"
+    compile_with = "traced"         # compiled: the kernels traced; NumPy: see output
 
-    def setup(self, robot, urdf, locked_joints, frame):
-        _pinocchio(self.name, self.type_name)
-        model = load_model(self, robot, urdf, locked_joints, 0.0)[0]
+    def setup(self, robot, urdf, locked_joints, frame, implementation):
+        self._pin = _pinocchio(self.name, self.type_name)
+        model, self._data = load_model(self, robot, urdf, locked_joints, 0.0)[:2]
+        self.model = model
+        self.implementation = implementation
         try:
             placement = rb.frame_from_pinocchio(model, frame)
         except KeyError:
@@ -656,6 +659,33 @@ class URDFFrame(Block):
         self.declare_output("J", (6, n), feedthrough=("q",), label="$J$")
         self.declare_output("Jdot_qdot", (6,), feedthrough=("q", "qdot"),
                             label=r"$\dot J \dot q$")
+        self._frame_id = model.getFrameId(frame)
         self.set_param("tree", rigid_body_model(*self.robot_description)[0])
         self.set_param("frame", placement)
         self.set_kernels(output=frame_output, params=("tree", "frame"))
+
+    def output(self, t, x, u):
+        """The kernel, or pinocchio one variant at a time (``implementation``): the frame's
+        placement, getFrameJacobian and getFrameClassicalAcceleration at qddot = 0 (both in
+        LOCAL_WORLD_ALIGNED)."""
+        B = max(u[0].shape[0], u[1].shape[0])
+        if _uses_kernels(self.implementation, B):
+            return Block.output(self, t, x, u)
+        pin, model, data, fid = self._pin, self.model, self._data, self._frame_id
+        n = model.nv
+        q, qdot = (np.broadcast_to(v, (B, n)) for v in u)
+        position, rotation = np.empty((B, 3)), np.empty((B, 3, 3))
+        J, bias = np.empty((B, 6, n)), np.empty((B, 6))
+        zero = np.zeros(n)
+        world = pin.LOCAL_WORLD_ALIGNED
+        for b in range(B):
+            pin.forwardKinematics(model, data, q[b], qdot[b], zero)
+            placement = pin.updateFramePlacement(model, data, fid)
+            position[b] = placement.translation
+            rotation[b] = placement.rotation
+            pin.computeJointJacobians(model, data, q[b])
+            J[b] = pin.getFrameJacobian(model, data, fid, world)
+            acc = pin.getFrameClassicalAcceleration(model, data, fid, world)
+            bias[b, :3] = acc.linear
+            bias[b, 3:] = acc.angular
+        return position, rotation, J, bias

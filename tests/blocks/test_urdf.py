@@ -290,8 +290,10 @@ def test_robot_diagrams_give_the_same_numbers_with_kernels_and_with_pinocchio(pa
     import fwdstep
     results = []
     for impl in IMPLEMENTATIONS:
-        d = fwdstep.load_diagram(str(path), overrides={
-            "t_final": 0.02, "arm.implementation": impl, "Y.implementation": impl})
+        overrides = {"t_final": 0.02, "arm.implementation": impl, "Y.implementation": impl}
+        if path.stem == "ur5_task_space":
+            overrides["tool.implementation"] = impl
+        d = fwdstep.load_diagram(str(path), overrides=overrides)
         results.append(fwdstep.simulate(d))
     ref, got = results
     for name in ref.names:
@@ -411,7 +413,7 @@ def test_urdf_frame_block_is_pinocchio_s_task_space_kinematics():
     from fwdstep.blocks.urdf import URDFFrame
     model, data = reference_model("ur5")
     fid = model.getFrameId("tool0")
-    blk = URDFFrame("ee", robot="ur5", frame="tool0")
+    blk = URDFFrame("ee", robot="ur5", frame="tool0", implementation="kernels")
     assert blk.outputs["J"].shape == (6, 6)
     assert blk.feedthrough("position") == ("q",)
     for q, v, _, _ in points(6, 3, 11):
