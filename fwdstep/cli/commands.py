@@ -93,6 +93,20 @@ class Progress:
               file=self.stream, flush=True)
 
 
+def _compile_news(event: str, info: dict) -> None:
+    """The compiled backend's progress lines (``simulate(on_compile=...)``), on stderr."""
+    if event == "compiling":
+        name = os.path.basename(info["diagram"] or "") or "the diagram"
+        unit = "scalar operations" if info["what"] == "scalar stage" else "block calls"
+        print(f"fwdstep: compiling {name} for the compiled backend ({info['operations']} "
+              f"{unit}, about {info['estimate_s']:.0f} s) ...", file=sys.stderr, flush=True)
+    elif event == "compiled":
+        print(f"fwdstep: compiled in {info['seconds']:.1f} s", file=sys.stderr, flush=True)
+    elif event == "numpy":
+        print(f"fwdstep: note: running the NumPy path: {info['reason']}, which compiling "
+              "would not make faster", file=sys.stderr, flush=True)
+
+
 def cmd_validate(path: str, sets=None) -> int:
     from fwdstep.core.budgets import check_log
     from fwdstep.structure.compiler import load_diagram
@@ -192,7 +206,8 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
     result = None
     try:
         result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
-                          max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
+                          max_log_bytes=max_log_bytes,   # checks the log's size (budgets)
+                          on_compile=None if quiet else _compile_news)
     except SimulationError as exc:        # its line says where it stopped
         result = exc.result
         if progress is not None and progress.live and progress.started:

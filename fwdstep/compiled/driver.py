@@ -22,21 +22,47 @@ from fwdstep.run.outcome import (SimulationInterrupted, _divergence_message, _fi
 from fwdstep.structure.compiler import CompiledDiagram
 
 
-def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
+#: False: run object-mode blocks inside the compiled loop even when compiling cannot help
+#: (for tests of that machinery, fwdstep.run.python_blocks)
+PICK_NUMPY_FOR_OBJECT_MODE = True
+
+
+def simulate_compiled(d: CompiledDiagram, progress, x0, on_compile=None) -> Result:
     """``simulate`` with the numba backend: the same procedure, run in compiled chunks, on
     the same step grid (``plan_events``); discrete updates are applied here, between the
-    chunks the loop ends at them (status 3, ``backend_numba.event_arrays``)."""
+    chunks the loop ends at them (status 3, ``backend_numba.event_arrays``).
+
+    ``on_compile(event, info)`` hears what compiling costs: ("compiling", {"diagram",
+    "what", "operations", "estimate_s"}) before a structure never compiled before is compiled,
+    ("compiled", {"seconds"}) after; ("numpy", {"reason"}) when compiling cannot help (the
+    stage does not trace and the loop would call object-mode blocks,
+    ``backend_numba.object_mode_only``): the run then takes the NumPy path."""
     try:
         from fwdstep.compiled import backend_numba
     except ImportError:
         raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
                           "backend 'numpy')", file=d.file) from None
+    if PICK_NUMPY_FOR_OBJECT_MODE:
+        backend_numba.check_compilable(d)
+        reason = backend_numba.object_mode_only(d)
+        if reason is not None:
+            if on_compile is not None:
+                on_compile("numpy", {"reason": reason})
+            from fwdstep.run.simulate import simulate
+            return simulate(d, progress, x0, backend="numpy")
     cfg = d.spec.simulation
     h, n_steps, every, bound = cfg.step, cfg.n_steps, cfg.log_every, cfg.bound
     wall0 = _time.perf_counter()
     n_rows = n_steps // every + 1 + (1 if n_steps % every else 0)
     events = plan_events(d, h, n_steps)   # the NumPy path's split steps, run in the loop
-    prog = backend_numba.build_program(d, n_rows, events)
+    announced = []
+
+    def notify(what, operations, estimate):
+        announced.append(_time.perf_counter())
+        if on_compile is not None:
+            on_compile("compiling", {"diagram": d.file, "what": what, "operations": operations,
+                                     "estimate_s": estimate})
+    prog = backend_numba.build_program(d, n_rows, events, notify=notify)
     B = d.batch
     x = prog.xn                               # (B, N); each variant runs on its own row
     x[...] = d.x0
@@ -58,6 +84,8 @@ def simulate_compiled(d: CompiledDiagram, progress, x0) -> Result:
             late = signals.pending()          # was swallowed and broke the function)
             if late is not None:
                 raise late
+            if announced and on_compile is not None:
+                on_compile("compiled", {"seconds": _time.perf_counter() - announced[0]})
             sample = _sampler(d, events, x) if events is not None and events.discrete else None
             while n < n_steps:
                 with signals.held():      # a signal during the chunk ends the run after

@@ -68,7 +68,7 @@ def _plugged(name: str, d):
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
              fuse: bool = True, backend: str | None = None,
              log_dir: str | None = None, max_log_bytes: int | None = None,
-             record_states: bool = False) -> Result:
+             record_states: bool = False, on_compile=None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -80,6 +80,9 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
     ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
     ``fwdstep.compiled.backend_numba``; batches run their variants in parallel).
+    ``on_compile(event, info)``: the compiled backend's news, for a progress line
+    (``fwdstep.compiled.driver.simulate_compiled``: compiling a never-seen structure, with
+    an estimate; compiled; or taking the NumPy path because compiling cannot help).
     ``log_dir``: record into memory-mapped files in that directory instead of memory
     (``fwdstep run --log-to-disk``; NumPy backend).
     ``record_states``: also keep the state at every recorded time as ``result.states``
@@ -120,7 +123,7 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
                               "compiled backend (use backend numpy)", file=d.file)
         return simulate_ivp(d, progress, x0)
     if (backend or cfg.backend) == "compiled":
-        return _plugged("compiled", d).simulate_compiled(d, progress, x0)
+        return _plugged("compiled", d).simulate_compiled(d, progress, x0, on_compile)
     if (backend or cfg.backend) != "numpy":
         raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}")
     h = cfg.step
