@@ -94,19 +94,20 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     used = backend or d.spec.simulation.backend
     try:
         result = _simulate(d, progress, x0, fuse=fuse, backend=backend, log_dir=log_dir,
-                           max_log_bytes=max_log_bytes, record_states=record_states)
+                           max_log_bytes=max_log_bytes, record_states=record_states,
+                           on_compile=on_compile)
     except SimulationError as exc:
-        if exc.result is not None:
-            exc.result.backend = used      # the record of the run (fwdstep.results.provenance)
-        raise
-    result.backend = used
+        if exc.result is not None:        # the record of the run (fwdstep.results.provenance);
+            exc.result.backend = getattr(exc.result, "backend", None) or used   # the compiled
+        raise                                 # backend may have taken the NumPy path
+    result.backend = getattr(result, "backend", None) or used
     return result
 
 
 def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
               fuse: bool = True, backend: str | None = None,
               log_dir: str | None = None, max_log_bytes: int | None = None,
-              record_states: bool = False) -> Result:
+              record_states: bool = False, on_compile=None) -> Result:
     """``simulate`` without recording the backend used."""
     from fwdstep.core.budgets import check_log
     check_log(d, max_log_bytes, to_disk=log_dir, api=True)

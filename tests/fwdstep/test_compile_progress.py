@@ -20,16 +20,26 @@ def robot(name, t_final):
                                 {"t_final": t_final})
 
 
-def test_a_never_seen_stage_is_announced_with_an_estimate(monkeypatch):
-    from fwdstep.compiled import backend_numba, llvm_stage
-    monkeypatch.setattr(llvm_stage, "_compiled", {})        # nothing compiled in this process
+@pytest.fixture
+def nothing_compiled():
+    """The process's compiled stages forgotten for the test, and remembered again after it
+    (with the new ones: an LLVM engine is never destroyed while its code may be called)."""
+    from fwdstep.compiled import llvm_stage
+    saved = dict(llvm_stage._compiled)
+    llvm_stage._compiled.clear()
+    yield llvm_stage._compiled
+    llvm_stage._compiled.update(saved)
+
+
+def test_a_never_seen_stage_is_announced_with_an_estimate(nothing_compiled):
+    from fwdstep.compiled import backend_numba
     news = []
     d = robot("ur5_task_space", 0.01)
     r = fwdstep.simulate(d, backend="compiled", on_compile=lambda e, i: news.append((e, i)))
     assert [e for e, _ in news] == ["compiling", "compiled"]
     info = news[0][1]
     assert info["what"] == "scalar stage" and info["diagram"] == d.file
-    assert len(llvm_stage._compiled) == 1 and 2000 < info["operations"] < 5000
+    assert len(nothing_compiled) == 1 and 2000 < info["operations"] < 5000
     low = backend_numba.compile_estimate("stage", info["operations"])
     assert low <= info["estimate_s"] <= low + backend_numba.LOOP_SECONDS
     assert news[1][1]["seconds"] > 0
@@ -45,6 +55,7 @@ def test_object_mode_only_runs_the_numpy_path_with_a_note():
     d = robot("ur5_theorem6", 0.005)
     got = fwdstep.simulate(d, backend="compiled", on_compile=lambda e, i: news.append((e, i)))
     assert [e for e, _ in news] == ["numpy"]
+    assert got.backend == "numpy"                          # the record says what ran
     assert "does not trace" in news[0][1]["reason"] and "arm" in news[0][1]["reason"]
     ref = fwdstep.simulate(robot("ur5_theorem6", 0.005), backend="numpy")
     for name in ref.names:
