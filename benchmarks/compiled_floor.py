@@ -34,6 +34,7 @@ sys.path.insert(0, ROOT)
 
 import fwdstep  # noqa: E402
 import hand_loops  # noqa: E402
+from fwdstep.structure.compiler import compile_spec  # noqa: E402
 from fwdstep.structure.spec import load_spec  # noqa: E402
 
 SLOTINE = os.path.join(ROOT, "diagrams", "slotine_li.yaml")
@@ -195,7 +196,7 @@ def main(argv=None) -> int:
     spec = load_spec(SLOTINE)
     spec.simulation.t_final = args.t_final
     sim, p = spec.simulation, spec.parameters
-    d = fwdstep.structure.compiler.compile_spec(spec)
+    d = compile_spec(spec)
     arm = next(e for e in spec.blocks if e.name == "arm").params
     hand = lambda: hand_loops.slotine_li(sim.t_final, sim.step, sim.log_every, p["Lambda"],  # noqa: E731
                                          p["K"], p["Gamma"], p["theta0"], p["A"], p["w"],

@@ -41,6 +41,7 @@ sys.path.insert(0, ROOT)
 
 import fwdstep  # noqa: E402
 import hand_loops  # noqa: E402
+from fwdstep.structure.compiler import compile_spec  # noqa: E402
 from fwdstep.structure.spec import load_spec  # noqa: E402
 from fwdstep.sweeps.sweep import run_sweep  # noqa: E402
 
@@ -108,7 +109,7 @@ def bench_single(label, path, overrides, hand_factory, repeats, t_final, report)
     spec = load_spec(path, overrides)
     if t_final:
         spec.simulation.t_final = t_final
-    d = fwdstep.structure.compiler.compile_spec(spec)
+    d = compile_spec(spec)
     hand = hand_factory(spec)
     res = interleaved({"hand": hand, "fwdstep": lambda: fwdstep.simulate(d)}, repeats)
     diff = agreement(res["fwdstep"]["out"], res["hand"]["out"][1])
@@ -142,10 +143,10 @@ def bench_compiled(label, path, overrides, d, hand, repeats, t_final, report):
     diff = float(np.max(np.abs(res["compiled"]["out"]["e.y"] - fwdstep.simulate(d)["e.y"])))
     line("compiled backend, in process", res["compiled"], hand)
     code = ("import sys, time; w = time.perf_counter(); import fwdstep; "
-            "from fwdstep.structure.spec import load_spec; import json; "
+            "from fwdstep.structure.spec import load_spec; from fwdstep.structure.compiler import compile_spec; import json; "
             "spec = load_spec(sys.argv[1], json.loads(sys.argv[2])); "
             "spec.simulation.t_final = float(sys.argv[3]) or spec.simulation.t_final; "
-            "d = fwdstep.structure.compiler.compile_spec(spec); "
+            "d = compile_spec(spec); "
             "r = fwdstep.simulate(d, backend='compiled'); "
             "print(time.perf_counter() - w, r.wall_time)")
     walls, inner = [], []
@@ -175,7 +176,7 @@ def bench_sweep(repeats, samples, t_final, full, report):
         spec = load_spec(SLOTINE, overrides)
         if t_final:
             spec.simulation.t_final = t_final
-        return fwdstep.simulate(fwdstep.structure.compiler.compile_spec(spec))
+        return fwdstep.simulate(compile_spec(spec))
 
     def sweep(sequential=False):
         if t_final:                     # a shortened copy of the diagram for --quick
@@ -229,7 +230,7 @@ def bench_ell(repeats, t_final, report):
         spec = load_spec(THEOREM1, {"ell": ell, "a1": 0, "a2": 0})
         if t_final:
             spec.simulation.t_final = t_final
-        d = fwdstep.structure.compiler.compile_spec(spec)
+        d = compile_spec(spec)
         res = interleaved({"hand": theorem1_hand(spec),
                            "fwdstep": lambda d=d: fwdstep.simulate(d)}, repeats)
         first = first or res["fwdstep"]
@@ -307,7 +308,7 @@ def bench_memory(t_final, report):
     out = {}
     for every in (1, 10):
         spec.simulation.log_every = every
-        d = fwdstep.structure.compiler.compile_spec(spec)
+        d = compile_spec(spec)
         tracemalloc.start()
         r = fwdstep.simulate(d)
         peak = tracemalloc.get_traced_memory()[1] / 1e6

@@ -178,7 +178,8 @@ def main(argv=None) -> int:
         parts = set(args.only.split(","))
         probe = sweep(workers=1)
         log = hand(probe)
-        e = probe.parts[0]["e"]
+        order = np.concatenate([part["indices"] for part in probe.parts])
+        e = np.concatenate([part["e"] for part in probe.parts], axis=1)[:, np.argsort(order)]
         diff = float(np.max(np.abs(e - log)))
         print(f"(a) {args.samples} variants, t_final {cfg.t_final:g} s, step {cfg.step:g}: "
               f"{len(probe.batches)} batch(es); max |e_sweep - e_hand| = {diff:.2e}")

@@ -30,6 +30,16 @@ def saturation_output(t, x, u, lower, upper):
     return (np.minimum(np.maximum(u, lower), upper),)
 
 
+def clip_symmetric_output(t, x, u, limit):
+    """y = min(max(u, -limit), limit), per element."""
+    return (np.minimum(np.maximum(u, -limit), limit),)
+
+
+def clip_output(t, x, u, lower, upper):
+    """y = min(max(u, lower), upper), per element."""
+    return (np.minimum(np.maximum(u, lower), upper),)
+
+
 def dead_zone_output(t, x, u, lower, upper):
     """y = u - min(max(u, lower), upper): u - upper above, 0 inside, u - lower below."""
     return (u - np.minimum(np.maximum(u, lower), upper),)
@@ -238,6 +248,44 @@ class Saturation(_Interval):
         hi = np.inf if upper is None else np.asarray(upper, dtype=float)
         shape = _infer_shape(self, shape, lo, hi)
         _declare_interval(self, lo, hi, shape, saturation_output)
+
+
+@register
+class Clip(Block):
+    """Clip: each element of u clipped to [-limit, limit] or [lower, upper], limits as signals.
+
+    A ``Saturation`` whose limits are inputs, e.g. a torque clipped to a robot's
+    ``URDFArm.effort_limit``.
+
+    Equation: y_i = min(max(u_i, -limit_i), limit_i); with ``symmetric: false``,
+    y_i = min(max(u_i, lower_i), upper_i) (an element with lower_i > upper_i gives upper_i).
+
+    Ports (drawn for symmetric = true; otherwise inputs u, lower, upper):
+        | port  | direction | shape | feedthrough |
+        | u     | in        | shape | -           |
+        | limit | in        | shape | -           |
+        | y     | out       | shape | u, limit    |
+
+    Parameters:
+        symmetric: true (inputs u, limit) or false (inputs u, lower, upper).
+        shape: signal shape ([] scalar, [n], [n, m]); default: set by the wiring.
+    """
+
+    params = {
+        "symmetric": Param("bool", True, "limits [-limit, limit] (true) or [lower, upper]"),
+        "shape": Param("array", None, "signal shape, e.g. [2]; default: from the wiring"),
+    }
+    shape_from = {"shape": ("u", "y", "limit", "lower", "upper")}
+    example = {"shape": [2]}
+
+    def setup(self, symmetric, shape):
+        shape = _shape(self, shape)
+        self.declare_input("u", shape)
+        bounds = ("limit",) if symmetric else ("lower", "upper")
+        for name in bounds:
+            self.declare_input(name, shape)
+        self.declare_output("y", shape)
+        self.set_kernels(output=clip_symmetric_output if symmetric else clip_output)
 
 
 @register

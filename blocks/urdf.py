@@ -293,14 +293,15 @@ def _summary_with_hint(cls) -> str:
 
 # ------------------------------------------------------------------------------ kernels
 def arm_output(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-               velocity_scale, theta, friction):
-    """q, qdot, theta (the parameter vector in the block's form, constant)."""
+               velocity_scale, theta, effort, velocity, lower, upper, friction):
+    """q, qdot, theta (the parameter vector in the block's form) and the URDF's limits
+    (constant)."""
     n = x.shape[1] // 2
-    return x[:, :n], x[:, n:], theta
+    return x[:, :n], x[:, n:], theta, effort, velocity, lower, upper
 
 
 def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-                   velocity_scale, theta, friction):
+                   velocity_scale, theta, effort, velocity, lower, upper, friction):
     """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) with tau_f of
     the Friction block's law (blocks/nonlinear.py) when ``friction``."""
     n = x.shape[1] // 2
@@ -314,6 +315,36 @@ def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous
     dx[:, :n] = qdot
     dx[:, n:] = qddot
     return dx
+
+
+#: what a limit output holds for a joint whose URDF gives none (a finite number: every output
+#: of a run must be finite)
+NO_LIMIT = float(np.finfo(float).max)
+
+
+def urdf_limits(model) -> tuple:
+    """(effort, velocity, lower, upper) of the model's joints as the URDF's <limit> gives
+    them (pinocchio's effortLimit, velocityLimit, lower/upperPositionLimit); inf where it
+    gives none (an effort or velocity <= 0, or lower >= upper)."""
+    effort = np.array(model.effortLimit, dtype=float)
+    velocity = np.array(model.velocityLimit, dtype=float)
+    lower = np.array(model.lowerPositionLimit, dtype=float)
+    upper = np.array(model.upperPositionLimit, dtype=float)
+    effort[~(effort > 0.0)] = np.inf
+    velocity[~(velocity > 0.0)] = np.inf
+    none = ~(lower < upper) | ~np.isfinite(lower) | ~np.isfinite(upper)
+    lower[none], upper[none] = -np.inf, np.inf
+    return effort, velocity, lower, upper
+
+
+def _joint_units(tree) -> tuple:
+    """(effort, velocity, position) units: of revolute joints, prismatic ones, or both."""
+    kinds = set(tree[:, 1].astype(int).tolist())
+    if kinds == {rb.REVOLUTE}:
+        return "N m", "rad/s", "rad"
+    if kinds == {rb.PRISMATIC}:
+        return "N", "m/s", "m"
+    return "N m or N", "rad/s or m/s", "rad or m"
 
 
 # (the kernels call rigid_body's functions by name: the tracer rebinds a kernel's global
@@ -349,6 +380,18 @@ class URDFArm(MechanicalPlant):
         | q        | out       | (n,)  | -           |
         | qdot     | out       | (n,)  | -           |
         | theta    | out       | (p,)  | -           |
+        | effort_limit   | out | (n,) | -           |
+        | velocity_limit | out | (n,) | -           |
+        | position_lower | out | (n,) | -           |
+        | position_upper | out | (n,) | -           |
+
+    The four ``*_limit``/``position_*`` outputs are the URDF's joint limits (<limit effort=
+    velocity= lower= upper=>; constant; 1.8e308 where the URDF gives none), for a
+    ``Saturation`` with limit inputs (``Clip``) or a reference that respects them.  The run
+    also reports, in summary.json's ``limits`` and the report, max_t |tau_i| / effort_i,
+    max_t |qdot_i| / velocity_i and the position's max |q_i - centre_i| / half-range_i
+    (fwdstep.run.limits); above 1 the joint left its limit.  The run goes on unless
+    ``stop_on_limits``.
 
     Parameters:
         robot: example-robot-data model (panda: 7 joints, fingers locked; ur5: 6 joints), or
@@ -361,6 +404,8 @@ class URDFArm(MechanicalPlant):
         (default: the URDF's damping and friction).
         coulomb_velocity: velocity scale of the smoothed Coulomb term (rad/s, default 0.01).
         q0, qdot0: initial joint positions and velocities (one number or n numbers).
+        stop_on_limits: end the run at the first recorded sample beyond a URDF limit
+        (effort on tau, velocity, position), results kept (default false: report only).
     """
 
     params = {
@@ -372,13 +417,16 @@ class URDFArm(MechanicalPlant):
         "coulomb_velocity": Param("float", 0.01, "velocity scale of tanh in the Coulomb term"),
         "q0": Param("array", 0.0, "initial joint positions, scalar or (n,)"),
         "qdot0": Param("array", 0.0, "initial joint velocities, scalar or (n,)"),
+        "stop_on_limits": Param("bool", False, "end the run at the first recorded sample "
+                                               "beyond a URDF joint limit (effort, velocity, "
+                                               "position); default: report only"),
     }
     example = {"robot": "ur5", "q0": [0.1, -1.0, 1.2, 0.0, 0.5, 0.0], "damping": 0.1}
     summary = classmethod(_summary_with_hint)
     compile_with = "traced"         # compiled: the kernels traced; NumPy: see derivative
 
     def setup(self, robot, urdf, locked_joints, gravity, parameters, implementation, damping,
-              coulomb, coulomb_velocity, q0, qdot0):
+              coulomb, coulomb_velocity, q0, qdot0, stop_on_limits):
         from .robot import _vector_param
         self._pin = _pinocchio(self.name, self.type_name)
         self.model, self._data, _, _ = load_model(self, robot, urdf, locked_joints, gravity)
@@ -389,6 +437,23 @@ class URDFArm(MechanicalPlant):
         theta, _ = _parameter_form(self, self.model, robot, urdf, locked_joints, gravity,
                                    parameters)
         self.declare_output("theta", theta.shape, feedthrough=(), label=r"$\theta$")
+        tree = rigid_body_model(*self.robot_description)[0]
+        joints = list(self.model.names[1:])
+        effort_unit, velocity_unit, position_unit = _joint_units(tree)
+        limits = urdf_limits(self.model)
+        for name, unit, label in (("effort_limit", effort_unit, r"$\tau_{max}$"),
+                                  ("velocity_limit", velocity_unit, r"$\dot q_{max}$"),
+                                  ("position_lower", position_unit, r"$q_{min}$"),
+                                  ("position_upper", position_unit, r"$q_{max}$")):
+            self.declare_output(name, (n,), feedthrough=(), label=label, unit=unit,
+                                components=joints)
+        effort, velocity, lower, upper = limits
+        self.declare_limit("tau", "effort", effort, unit=effort_unit, components=joints,
+                           stop=stop_on_limits)
+        self.declare_limit("qdot", "velocity", velocity, unit=velocity_unit, components=joints,
+                           stop=stop_on_limits)
+        self.declare_limit("q", "position", upper, lower, unit=position_unit,
+                           components=joints, stop=stop_on_limits)
         self.parameter_form = parameters
         if coulomb_velocity <= 0.0:
             raise ParameterError(f"block {self.name!r} parameter 'coulomb_velocity' must be "
@@ -408,9 +473,12 @@ class URDFArm(MechanicalPlant):
         self.set_param("viscous", damping)
         self.set_param("velocity_scale", [coulomb_velocity])
         self.set_param("theta", theta)
+        for name, value in zip(("effort", "velocity", "lower", "upper"), limits):
+            self.set_param(name, np.clip(value, -NO_LIMIT, NO_LIMIT))
         self.set_kernels(output=arm_output, derivative=arm_derivative,
                          params=("tree", "gravity", "inertia", "coulomb", "viscous",
-                                 "velocity_scale", "theta"),
+                                 "velocity_scale", "theta", "effort", "velocity", "lower",
+                                 "upper"),
                          static=(bool(np.any(damping) or np.any(coulomb)),))
 
     def derivative(self, t, x, u):
@@ -560,18 +628,21 @@ class URDFFrame(Block):
     Parameters:
         robot / urdf, locked_joints: the robot (see ``URDFArm``).
         frame: the frame's name (a URDF link or joint).
+        implementation: 'auto', 'pinocchio' or 'kernels' (the NumPy path's choice).
     """
 
     params = {k: v for k, v in _robot_params().items()
-              if k in ("robot", "urdf", "locked_joints")}
+              if k in ("robot", "urdf", "locked_joints", "implementation")}
     params["frame"] = Param("str", doc="a URDF link or joint name (e.g. tool0, panda_hand)")
     example = {"robot": "ur5", "frame": "tool0"}
     summary = classmethod(_summary_with_hint)
-    compile_with = "traced"
+    compile_with = "traced"         # compiled: the kernels traced; NumPy: see output
 
-    def setup(self, robot, urdf, locked_joints, frame):
-        _pinocchio(self.name, self.type_name)
-        model = load_model(self, robot, urdf, locked_joints, 0.0)[0]
+    def setup(self, robot, urdf, locked_joints, frame, implementation):
+        self._pin = _pinocchio(self.name, self.type_name)
+        model, self._data = load_model(self, robot, urdf, locked_joints, 0.0)[:2]
+        self.model = model
+        self.implementation = implementation
         try:
             placement = rb.frame_from_pinocchio(model, frame)
         except KeyError:
@@ -588,6 +659,33 @@ class URDFFrame(Block):
         self.declare_output("J", (6, n), feedthrough=("q",), label="$J$")
         self.declare_output("Jdot_qdot", (6,), feedthrough=("q", "qdot"),
                             label=r"$\dot J \dot q$")
+        self._frame_id = model.getFrameId(frame)
         self.set_param("tree", rigid_body_model(*self.robot_description)[0])
         self.set_param("frame", placement)
         self.set_kernels(output=frame_output, params=("tree", "frame"))
+
+    def output(self, t, x, u):
+        """The kernel, or pinocchio one variant at a time (``implementation``): the frame's
+        placement, getFrameJacobian and getFrameClassicalAcceleration at qddot = 0 (both in
+        LOCAL_WORLD_ALIGNED)."""
+        B = max(u[0].shape[0], u[1].shape[0])
+        if _uses_kernels(self.implementation, B):
+            return Block.output(self, t, x, u)
+        pin, model, data, fid = self._pin, self.model, self._data, self._frame_id
+        n = model.nv
+        q, qdot = (np.broadcast_to(v, (B, n)) for v in u)
+        position, rotation = np.empty((B, 3)), np.empty((B, 3, 3))
+        J, bias = np.empty((B, 6, n)), np.empty((B, 6))
+        zero = np.zeros(n)
+        world = pin.LOCAL_WORLD_ALIGNED
+        for b in range(B):
+            pin.forwardKinematics(model, data, q[b], qdot[b], zero)
+            placement = pin.updateFramePlacement(model, data, fid)
+            position[b] = placement.translation
+            rotation[b] = placement.rotation
+            pin.computeJointJacobians(model, data, q[b])
+            J[b] = pin.getFrameJacobian(model, data, fid, world)
+            acc = pin.getFrameClassicalAcceleration(model, data, fid, world)
+            bias[b, :3] = acc.linear
+            bias[b, 3:] = acc.angular
+        return position, rotation, J, bias

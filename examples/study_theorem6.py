@@ -53,7 +53,7 @@ def run_case(job):
     wall = time.perf_counter()
     try:
         r = fwdstep.simulate(fwdstep.compile_batch(specs))
-    except fwdstep.core.errors.SimulationError as exc:     # keep what was computed
+    except fwdstep.SimulationError as exc:     # keep what was computed
         r = exc.result
     error_name = "qds.dq" if "qds.dq" in r else "dq.y"
     return {"label": label, "t": r.t, "theta": r["adapt.theta_hat"], "dq": r[error_name],

@@ -2,7 +2,8 @@
 
 Every verb returns an exit code:
   0 success; 2 the diagram, an option or the output directory is wrong (one line on stderr);
-  3 the simulation diverged; 4 a block raised at run time; 128 + signal number when
+  3 the simulation diverged; 4 a block raised at run time; 5 the run stopped at an operating
+  limit (``stop_on_limits``, fwdstep.run.limits); 128 + signal number when
   interrupted: 130 Ctrl-C (SIGINT), 143 SIGTERM, 129 SIGHUP (``fwdstep.core.signals``).
 Partial results are written before a non-zero exit whenever anything was computed, as one
 transaction into a locked output directory (``fwdstep.results.outputs``).
@@ -13,10 +14,11 @@ import os
 import sys
 
 from fwdstep.core.errors import (BlockRuntimeError, DiagramError, DivergenceError, FwdstepError,
-                     OutputError, SimulationError, one_line, printable)
+                     LimitExceeded, OutputError, SimulationError, one_line, printable)
 from fwdstep.results.result import RESULT_FILE, SUMMARY_FILE
 
 EXIT_OK, EXIT_INPUT, EXIT_DIVERGED, EXIT_BLOCK, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
+EXIT_LIMIT = 5
 
 
 def _err(msg: str) -> None:
@@ -89,6 +91,20 @@ class Progress:
         frac = min(max(float(frac), 0.0), 1.0)
         print(f"{chr(13) if self.live else ''}  {100 * frac:5.1f}% simulated",
               file=self.stream, flush=True)
+
+
+def _compile_news(event: str, info: dict) -> None:
+    """The compiled backend's progress lines (``simulate(on_compile=...)``), on stderr."""
+    if event == "compiling":
+        name = os.path.basename(info["diagram"] or "") or "the diagram"
+        unit = "scalar operations" if info["what"] == "scalar stage" else "block calls"
+        print(f"fwdstep: compiling {name} for the compiled backend ({info['operations']} "
+              f"{unit}, about {info['estimate_s']:.0f} s) ...", file=sys.stderr, flush=True)
+    elif event == "compiled":
+        print(f"fwdstep: compiled in {info['seconds']:.1f} s", file=sys.stderr, flush=True)
+    elif event == "numpy":
+        print(f"fwdstep: note: running the NumPy path: {info['reason']}, which compiling "
+              "would not make faster", file=sys.stderr, flush=True)
 
 
 def cmd_validate(path: str, sets=None) -> int:
@@ -190,7 +206,8 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
     result = None
     try:
         result = simulate(d, progress=progress, backend=backend, log_dir=log_dir,
-                          max_log_bytes=max_log_bytes)   # checks the log's size (budgets)
+                          max_log_bytes=max_log_bytes,   # checks the log's size (budgets)
+                          on_compile=None if quiet else _compile_news)
     except SimulationError as exc:        # its line says where it stopped
         result = exc.result
         if progress is not None and progress.live and progress.started:
@@ -198,6 +215,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         _err(str(exc))
         code = (EXIT_DIVERGED if isinstance(exc, DivergenceError) else
                 EXIT_BLOCK if isinstance(exc, BlockRuntimeError) else
+                EXIT_LIMIT if isinstance(exc, LimitExceeded) else
                 signals.exit_code(exc))
         if result is None:
             return code
@@ -220,6 +238,9 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         _err(f"{late.reason} while the results were written; they are complete")
         code = code or signals.exit_code(late)
     if not quiet:
+        from fwdstep.run.limits import describe
+        for line in describe(result.limits):
+            print(f"fwdstep: note: {line}", file=sys.stderr)
         m = result.metrics()
         reached = f"t = {result.t[-1]:g} s" if len(result.t) else "nothing recorded"
         line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"

@@ -874,18 +874,66 @@ class _ScalarModule:
 _sealed_loops: set = set()
 
 
-def build_program(d, n_rows: int, plan=None, scalar: bool | None = None) -> CompiledProgram:
+#: CPU seconds to compile, measured on the 2-core development machine (docs/performance.md,
+#: "Compiling"): a scalar stage costs about STAGE_SECONDS + STAGE_SECONDS_PER_OP per scalar
+#: operation (LLVM; two-link Slotine-Li, 147 operations: 0.03 s; Panda Slotine-Li, 4890:
+#: 0.7 s), the loop around it LOOP_SECONDS once per machine and solver (then numba's cache:
+#: 2.0 s cold), array code about ARRAY_SECONDS + ARRAY_SECONDS_PER_OP per block call
+#: (two-link Slotine-Li, 7 block calls, every kernel cold: 24 s)
+STAGE_SECONDS, STAGE_SECONDS_PER_OP = 0.03, 1.6e-4
+LOOP_SECONDS, LOOP_LOAD_SECONDS = 2.0, 1.0
+#: compiling expected to take less than this is not announced (a small stage, every run)
+ANNOUNCE_FROM_SECONDS = 0.5
+ARRAY_SECONDS, ARRAY_SECONDS_PER_OP = 10.0, 2.0
+
+
+def compile_estimate(kind: str, operations: int) -> float:
+    """About how many seconds compiling takes: kind "stage" (LLVM, scalar operations),
+    "loop" (the loop around a scalar stage) or "array" (block calls)."""
+    if kind == "stage":
+        return STAGE_SECONDS + STAGE_SECONDS_PER_OP * operations
+    if kind == "loop":
+        return LOOP_SECONDS
+    return ARRAY_SECONDS + ARRAY_SECONDS_PER_OP * operations
+
+
+def object_mode_only(d) -> str | None:
+    """Why compiling cannot make ``d`` faster, or None: its stage does not trace into scalar
+    code and the array code would call blocks through numba's object mode (a Python call
+    per block and stage, as the NumPy path makes, plus object mode's own cost)."""
+    python = [s.block.name for s in d.schedule if _in_python(s.block)]
+    if not python:
+        return None
+    shapes = [tuple(s) for s in d.signal_shapes]
+    ops, fused = _ops_for(d.schedule, shapes, d.constant_signals)
+    from fwdstep.run.finite import unlogged_signals
+    logged = [d.signal_index[name] for name in d.logged]
+    S = TABLEAUX[d.spec.simulation.solver].stages
+    with _per_variant_kernels(d):
+        if (not d.sizes_at_run_time and
+                _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) is not None):
+            return None
+    names = ", ".join(python[:3]) + (", ..." if len(python) > 3 else "")
+    return (f"its stage does not trace into scalar code and the compiled loop would call "
+            f"{names} through numba's object mode")
+
+
+def build_program(d, n_rows: int, plan=None, scalar: bool | None = None,
+                  notify=None) -> CompiledProgram:
     """Generate, load (from the cache when possible) and bind the compiled run of ``d``;
     ``plan``: its ``fwdstep.run.events.plan_events`` (None: no declared times), whose split
     steps the loop runs as the NumPy path does (``event_arrays``).  ``scalar``: trace the
     kernels into scalar code (``_ScalarStage``; the default unless ``d.sizes_at_run_time``)
     when every kernel can be traced, else (or False) the array code of ``_Stage``, whose
-    sizes are run-time values."""
+    sizes are run-time values.  ``notify(what, operations, estimate)`` is called before
+    anything never compiled before is compiled (what: "scalar stage" or "array code"; the
+    number of scalar operations or block calls; about how many seconds it takes); the
+    caller times ``CompiledProgram.compile`` after it."""
     check_compilable(d)
     if scalar is None:
         scalar = not d.sizes_at_run_time
     with _per_variant_kernels(d):
-        return _build_program(d, n_rows, plan, scalar)
+        return _build_program(d, n_rows, plan, scalar, notify)
 
 
 @contextlib.contextmanager
@@ -912,7 +960,7 @@ def _per_variant_kernels(d):
             blk.kernels = kernels
 
 
-def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
+def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledProgram:
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -924,27 +972,38 @@ def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
     st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
         else None
     stage_fn = None
-    if st is not None:
-        from fwdstep.compiled.llvm_stage import compile_stage
-        try:
-            stage_fn = compile_stage(st)
-        except Exception as exc:  # noqa: BLE001 - an LLVM fault falls back, never stops a run
-            compiled_cache.warn(f"scalar stage not compiled ({type(exc).__name__}: "
-                                f"{exc}"[:200] + "); running the array code")
-            st = None
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
         final = f"({final} + bw[{m}] * K2[{j}, i])"
+    call = "stage({}, ts, stg, (row * B_ + vi) * width, wsp, Lp)"
     if st is not None:
+        from fwdstep.compiled.llvm_stage import compile_stage
         # the loop (fixed text: compiled once per machine and solver, then cached) calls
         # the stage (compiled per structure) through a function pointer
-        call = "stage({}, ts, stg, (row * B_ + vi) * width, wsp, Lp)"
         record = [f"if {call.format('2 if final else 1')} != 0: return 2, n, row + 1"]
         stage_der = ["if not (stg == 0 and q == q0 and (n % every == 0 or final)):",
                      "    " + call.format("0")]
         gen = _Gen()
         skeleton = compiled_cache.load(_module_source(gen, None, [], record, [], stage_der,
                                                       final))
+        loop_new = not compiled_cache.compiled_before(skeleton)
+
+        def announce():
+            estimate = compile_estimate("stage", st.n_nodes) + (
+                compile_estimate("loop", 0) if loop_new else LOOP_LOAD_SECONDS)
+            if notify is not None and estimate >= ANNOUNCE_FROM_SECONDS:
+                notify("scalar stage", st.n_nodes, estimate)
+            announce.done = True
+        announce.done = False
+        try:
+            stage_fn = compile_stage(st, before=announce)
+        except Exception as exc:  # noqa: BLE001 - an LLVM fault falls back, never stops a run
+            compiled_cache.warn(f"scalar stage not compiled ({type(exc).__name__}: "
+                                f"{exc}"[:200] + "); running the array code")
+            st = None
+        if st is not None and loop_new and not announce.done:
+            announce()
+    if st is not None:
         module = _ScalarModule(skeleton, st, stage_fn)
         LL = np.full((n_rows, B, max(st.log_width, 1)), np.nan)
         logs = []
@@ -968,6 +1027,8 @@ def _build_program(d, n_rows: int, plan, scalar: bool) -> CompiledProgram:
         stage_der = st.derivatives("X2", "ts", "K2, stg")
         source = _module_source(gen, st, log_names, record, stage_out, stage_der, final)
         module = compiled_cache.load(source)
+        if notify is not None and not compiled_cache.compiled_before(module):
+            notify("array code", len(ops), compile_estimate("array", len(ops)))
         args, call_logs = [v for _, v in gen.args], logs
     a = np.zeros((S, S))
     for s, (_, coeffs) in enumerate(stages, start=1):

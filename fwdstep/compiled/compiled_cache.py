@@ -77,6 +77,17 @@ def _numba_files(folder: str, name: str) -> list:
     return sorted(p for p in glob.glob(pattern) if p.endswith((".nbi", ".nbc")))
 
 
+def compiled_before(module) -> bool:
+    """Whether the run functions of a generated module (``load``) are compiled already: in
+    this process, or in numba's cache beside it (their first call then loads machine code
+    instead of compiling it)."""
+    fn = getattr(module, "run_one", None)
+    if fn is not None and getattr(fn, "signatures", None):
+        return True
+    path = getattr(module, "__file__", None)
+    return bool(path) and bool(_numba_files(os.path.dirname(path), module.__name__))
+
+
 def _manifest(folder: str, name: str) -> str:
     return os.path.join(folder, f"{name}.sums")
 

@@ -6,6 +6,8 @@ are ``fwdstep.run.outcome``'s.
 """
 from __future__ import annotations
 
+import time as _time
+
 import numpy as np
 
 from fwdstep.core import signals
@@ -19,6 +21,26 @@ from fwdstep.run.program import build_program
 from fwdstep.structure.compiler import CompiledDiagram
 
 
+#: False: run object-mode blocks inside the compiled loop even when compiling cannot help
+#: (for tests of that machinery, fwdstep.run.python_blocks)
+PICK_NUMPY_FOR_OBJECT_MODE = True
+
+
+def numpy_instead(d: CompiledDiagram) -> str | None:
+    """Why compiling cannot help ``d`` (its stage does not trace and the loop would call
+    object-mode blocks, ``backend_numba.object_mode_only``): the run then takes the NumPy
+    path; None to compile.  A block the compiled backend refuses is refused here."""
+    try:
+        from fwdstep.compiled import backend_numba
+    except ImportError:
+        raise ConfigError("backend 'compiled' needs numba: pip install 'fwdstep[fast]' (or use "
+                          "backend 'numpy')", file=d.file) from None
+    if not PICK_NUMPY_FOR_OBJECT_MODE:
+        return None
+    backend_numba.check_compilable(d)
+    return backend_numba.object_mode_only(d)
+
+
 class CompiledBackend(Backend):
     """The numba backend of the run loop (``fwdstep.run.simulate.run``): the same
     procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
@@ -28,7 +50,7 @@ class CompiledBackend(Backend):
 
     scan_log = False
 
-    def __init__(self, d: CompiledDiagram, plan):
+    def __init__(self, d: CompiledDiagram, plan, on_compile=None):
         super().__init__(d, plan)
         try:
             from fwdstep.compiled import backend_numba
@@ -39,7 +61,15 @@ class CompiledBackend(Backend):
         cfg = d.spec.simulation
         self.h, self.n_steps, self.bound = cfg.step, cfg.n_steps, cfg.bound
         n_rows = self.n_steps // cfg.log_every + 1 + (1 if self.n_steps % cfg.log_every else 0)
-        self.prog = prog = backend_numba.build_program(d, n_rows, plan)
+        self.on_compile, self.announced = on_compile, []
+
+        def notify(what, operations, estimate):
+            self.announced.append(_time.perf_counter())
+            if on_compile is not None:
+                on_compile("compiling", {"diagram": d.file, "what": what,
+                                         "operations": operations, "estimate_s": estimate})
+
+        self.prog = prog = backend_numba.build_program(d, n_rows, plan, notify=notify)
         B = d.batch
         self.x = prog.xn                      # (B, N); each variant runs on its own row
         self.x[...] = d.x0
@@ -56,6 +86,8 @@ class CompiledBackend(Backend):
         late = signals.pending()              # was swallowed and broke the function)
         if late is not None:
             raise late
+        if self.announced and self.on_compile is not None:
+            self.on_compile("compiled", {"seconds": _time.perf_counter() - self.announced[0]})
         self.x[...] = x0
         if self.plan is not None and self.plan.discrete:
             self.sample = _sampler(self.d, self.plan, self.x)

@@ -215,11 +215,14 @@ def _target_machine():
     return _target[0]
 
 
-def compile_stage(st) -> CompiledStage:
-    """The machine code of ``_ScalarStage`` st (memoised in the process by its IR)."""
+def compile_stage(st, before=None) -> CompiledStage:
+    """The machine code of ``_ScalarStage`` st (memoised in the process by its IR);
+    ``before()`` is called first when it must be compiled (not memoised)."""
     text = stage_ir(st)
     key = hashlib.sha256(text.encode()).digest()
     if key not in _compiled:
+        if before is not None:
+            before()
         tm = _target_machine()
         mod = llvm.parse_assembly(text)
         mod.verify()

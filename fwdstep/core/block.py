@@ -110,6 +110,26 @@ class Kernels:
     tuple_inputs: bool = False
 
 
+@dataclass(frozen=True)
+class Limit:
+    """An operating limit a block declares on one of its ports (``Block.declare_limit``):
+    per element, the signal should stay in [lower, upper].  A run reports how close it came
+    (``fwdstep.run.limits``) and stops at the first recorded sample beyond it when ``stop``.
+    ``what`` names the quantity (effort, velocity, position), ``unit`` its unit,
+    ``components`` the element names (joints)."""
+    port: str
+    what: str
+    lower: tuple
+    upper: tuple
+    unit: str = ""
+    components: tuple = ()
+    stop: bool = False
+
+    @property
+    def symmetric(self) -> bool:
+        return all(lo == -hi for lo, hi in zip(self.lower, self.upper))
+
+
 def shape_str(shape: tuple) -> str:
     if shape == ():
         return "scalar ()"
@@ -149,6 +169,8 @@ class Block:
     #: (``fwdstep.structure.compiler.setup_state``); a subclass whose ``finalize`` sets more
     #: adds their names (tests/blocks/test_contract.py checks the declaration is complete)
     finalize_attributes: ClassVar[tuple] = ("kernels", "_unpack", "_kargs")
+    #: operating limits on ports (``declare_limit``); none by default
+    limits: tuple = ()
 
     def __init__(self, name: str, **params: Any):
         self.name = name
@@ -189,6 +211,19 @@ class Block:
         if label is not None or unit or components is not None:
             self.output_info[name] = {"label": label, "unit": unit,
                                       "components": list(components) if components else None}
+
+    def declare_limit(self, port: str, what: str, upper, lower=None, unit: str = "",
+                      components=None, stop: bool = False) -> None:
+        """An operating limit on input or output ``port`` (a vector): each element should
+        stay in [lower, upper] (``lower`` None: [-upper, upper]).  Not a constraint on the
+        numerics: the run reports, per element, how far the signal went relative to the
+        limit, and ends at the first recorded sample beyond it when ``stop``
+        (``fwdstep.run.limits``; the port's signal is recorded)."""
+        upper = np.asarray(upper, dtype=float).reshape(-1)
+        lower = -upper if lower is None else np.asarray(lower, dtype=float).reshape(-1)
+        self.limits = tuple(self.limits) + (Limit(
+            port, what, tuple(lower.tolist()), tuple(upper.tolist()), unit,
+            tuple(components or ()), bool(stop)),)
 
     def declare_state(self, n: int, initial=None) -> None:
         n = int(n)

@@ -129,5 +129,9 @@ class FwdstepWarning(UserWarning):
     ``fwdstep: warning: <message>``; through the API it is a Python warning."""
 
 
+class LimitExceeded(SimulationError):
+    """A signal crossed an operating limit declared with ``stop`` (``stop_on_limits``)."""
+
+
 class BlockRuntimeError(SimulationError):
     """A block's ``output`` or ``derivative`` raised; chained to the original exception."""

@@ -42,6 +42,7 @@ class Result:
         #: located zero crossings: (time, block, kind, variant) (fwdstep.run.crossings)
         self.events = list(events or [])
         self.notes = list(notes or [])        # one line each (chattering, a fallback)
+        self.limits = []     # operating limits reached (fwdstep.run.limits.limit_record)
 
     def __repr__(self) -> str:
         """One line: status (and why), time range, samples, signals with their shapes."""
@@ -174,6 +175,7 @@ class Result:
             "batch": self.batch,
             "wall_time_s": round(self.wall_time, 6),
             "metrics": _jsonable(self.metrics()),
+            **({"limits": _jsonable(self.limits)} if self.limits else {}),
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
             **_figure_summary(self),
         }
@@ -311,6 +313,7 @@ def load_result(outdir: str) -> Result:
                steps=summary.get("steps", 0))
     r.batch = batch
     r.stored = summary
+    r.limits = summary.get("limits") or []
     r.outdir = outdir
     r.signal_labels = summary.get("signal_labels") or {}
     r.figure_panels = {name: [(list(p["signals"]), p.get("scale", "linear")) for p in panels]

@@ -8,7 +8,7 @@ import time as _time
 
 import numpy as np
 
-from fwdstep.core.errors import DivergenceError, SimulationError
+from fwdstep.core.errors import DivergenceError, LimitExceeded, SimulationError
 from fwdstep.results.result import Result
 from fwdstep.run import finite
 from fwdstep.structure.compiler import CompiledDiagram
@@ -148,6 +148,12 @@ class Outcome:
             message = f"{int((~alive).sum())} of {B} variants diverged"
         t_out = t_log[:row]
         signals = {name: L[:row] for name, L in zip(d.logged, logs)}
+        if d.limits:
+            row, status, message, self.error = _stop_at_limits(
+                d, t_out, signals, row, status, message, self.error, alive, died_at,
+                self.reasons)
+            t_out = t_log[:row]
+            signals = {name: L[:row] for name, L in zip(d.logged, logs)}
         if B > 1:
             for b in np.flatnonzero(~alive):          # NaN after a variant's divergence
                 for L in signals.values():
@@ -156,6 +162,9 @@ class Outcome:
                         wall_time=_time.perf_counter() - wall0, steps=n + (status == "ok"),
                         diverged_at=died_at, reasons=self.reasons, events=self.events,
                         notes=self.notes)
+        if d.limits:
+            from fwdstep.run.limits import limit_record
+            result.limits = limit_record(d, t_out, signals)
         if status == "diverged" and isinstance(blamed, str):     # a block output, not a state
             raise DivergenceError(message, time=float(t_out[-1]), block=blamed or None,
                                   result=result)
@@ -167,6 +176,35 @@ class Outcome:
             self.error.result = result
             raise self.error
         return result
+
+
+def _stop_at_limits(d, t_out, signals, row, status, message, error, alive, died_at, reasons):
+    """Cut the run at the first recorded sample beyond a limit declared with ``stop``
+    (fwdstep.run.limits): a single run ends there (status ``limit exceeded``, unless it
+    failed earlier), a variant of a batch is frozen there (NaN after, its own line in
+    ``reasons``).  Returns (rows to keep, status, message, error)."""
+    from fwdstep.run.limits import LIMIT_STATUS, first_stop, stop_message
+    stops = first_stop(d, t_out, signals)
+    if stops is None or not (stops < row).any():
+        return row, status, message, error
+    if d.batch == 1:
+        r = int(stops[0])
+        message = stop_message(d, t_out, signals, r, 0, alone=True)
+        return r + 1, LIMIT_STATUS, message, LimitExceeded(message, time=float(t_out[r]))
+    stopped = 0
+    for b in np.flatnonzero(stops < row):
+        r = int(stops[b])
+        if not np.isnan(died_at[b]) and died_at[b] <= t_out[r]:
+            continue                              # diverged before
+        stopped += 1
+        reasons[int(b)] = stop_message(d, t_out, signals, r, int(b), alone=True)
+        alive[b] = False
+        died_at[b] = t_out[r + 1] if r + 1 < row else np.inf
+    if stopped and status in ("ok", "partially diverged"):
+        status = LIMIT_STATUS
+        message = (f"{stopped} of {d.batch} variants stopped at an operating limit "
+                   f"(stop_on_limits)")
+    return row, status, message, error
 
 
 def _divergence_message(d: CompiledDiagram, x, bound, t, variant=None) -> str:

@@ -151,7 +151,7 @@ def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
              fuse: bool = True, backend: str | None = None,
              log_dir: str | None = None, max_log_bytes: int | None = None,
-             record_states: bool = False) -> Result:
+             record_states: bool = False, on_compile=None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -163,6 +163,9 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     ``fuse=False`` calls every linear block instead of fusing them (for comparisons).
     ``backend`` overrides ``simulation.backend``: 'numpy' (default) or 'compiled' (numba,
     ``fwdstep.compiled.backend_numba``; batches run their variants in parallel).
+    ``on_compile(event, info)``: the compiled backend's news, for a progress line
+    (``fwdstep.compiled.driver.CompiledBackend``: compiling a never-seen structure, with
+    an estimate; compiled; or taking the NumPy path because compiling cannot help).
     ``log_dir``: record into memory-mapped files in that directory instead of memory
     (``fwdstep run --log-to-disk``; NumPy backend).
     ``record_states``: also keep the state at every recorded time as ``result.states``
@@ -174,19 +177,20 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     used = backend or d.spec.simulation.backend
     try:
         result = _simulate(d, progress, x0, fuse=fuse, backend=backend, log_dir=log_dir,
-                           max_log_bytes=max_log_bytes, record_states=record_states)
+                           max_log_bytes=max_log_bytes, record_states=record_states,
+                           on_compile=on_compile)
     except SimulationError as exc:
-        if exc.result is not None:
-            exc.result.backend = used      # the record of the run (fwdstep.results.provenance)
-        raise
-    result.backend = used
+        if exc.result is not None:        # the record of the run (fwdstep.results.provenance);
+            exc.result.backend = getattr(exc.result, "backend", None) or used   # the compiled
+        raise                                 # backend may have taken the NumPy path
+    result.backend = getattr(result, "backend", None) or used
     return result
 
 
 def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
               fuse: bool = True, backend: str | None = None,
               log_dir: str | None = None, max_log_bytes: int | None = None,
-              record_states: bool = False) -> Result:
+              record_states: bool = False, on_compile=None) -> Result:
     """``simulate`` without recording the backend used."""
     from fwdstep.core.budgets import check_log
     check_log(d, max_log_bytes, to_disk=log_dir, api=True)
@@ -228,8 +232,17 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
         stepper = NumpyBackend(d, plan, fuse=fuse, log_dir=log_dir,
                                record_states=record_states)
     else:
-        stepper = _plugged(name, d).CompiledBackend(d, plan)
+        plugged = _plugged(name, d)
+        reason = plugged.numpy_instead(d)
+        if reason is None:
+            stepper = plugged.CompiledBackend(d, plan, on_compile)
+        else:                                 # compiling cannot help: the NumPy path
+            if on_compile is not None:
+                on_compile("numpy", {"reason": reason})
+            from fwdstep.run.numpy_backend import NumpyBackend
+            name, stepper = "numpy", NumpyBackend(d, plan, fuse=fuse)
     result = run(d, stepper, progress, x0, wall0, notes)
     if record_states:
         result.states = stepper.states[:len(result.t)]
+    result.backend = name                     # the one that ran (a fallback says numpy)
     return result

@@ -52,6 +52,9 @@ class CompiledDiagram:
     # compiled backend: keep sizes as run-time values (a sweep whose batches differ only in
     # sizes compiles one program) instead of unrolled scalar code for these sizes
     sizes_at_run_time: bool = False
+    # operating limits the blocks declare (Block.declare_limit): (block name, Limit, the
+    # name of the signal at the port); their signals are recorded (fwdstep.run.limits)
+    limits: list = field(default_factory=list)
 
     @property
     def blocks(self) -> list:
@@ -284,12 +287,31 @@ def compile_structure(structure: Structure, batch: int, params: list) -> Compile
         x0[:, step.state] = np.broadcast_to(step.block.x0, (batch, step.block.n_states))
     logged = _logged_signals(spec, index)
     _check_declared_signals(spec, index)
+    limits = _declared_limits(schedule, names)
+    logged += [name for _, _, name in limits if name not in logged]
     d = CompiledDiagram(spec=spec, structure=structure, batch=batch, schedule=schedule,
                         stateful=stateful, n_states=offset, x0=x0, signal_names=names,
                         signal_shapes=shapes, signal_index=index, constant_signals=constants,
-                        logged=logged, variant_parameters=params)
+                        logged=logged, variant_parameters=params, limits=limits)
     check_step(d)                   # a step outside a block's stability region: refused
     return d
+
+
+def _declared_limits(schedule: list, names: list) -> list:
+    """(block name, Limit, signal name) of every limit a block declares on a port with a
+    signal (an unconnected optional input has none: its zero is no operating point)."""
+    out = []
+    for step in schedule:
+        blk = step.block
+        for limit in blk.limits:
+            if limit.port in blk.outputs:
+                idx = step.outputs[list(blk.outputs).index(limit.port)]
+            else:
+                idx = step.inputs[list(blk.inputs).index(limit.port)]
+                if names[idx].endswith("(zero)"):
+                    continue
+            out.append((blk.name, limit, names[idx]))
+    return out
 
 
 def _check_declared_signals(spec: DiagramSpec, index: dict) -> None:

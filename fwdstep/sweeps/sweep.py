@@ -87,8 +87,11 @@ from fwdstep.sweeps.variants import VariantSpecs
 from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE, METRICS, RECORD_FILE,  # noqa: F401
                                           PARTS_DIR, cell_text as _text)
 
-#: Largest batch; a group with more variants runs in several batches.
-MAX_BATCH = 512
+#: No fixed largest batch: a group runs in as few batches as the memory allows
+#: (``variant_bytes`` per variant, ``--max-memory`` shared by the batches running at once):
+#: every batch pays the run loop's per-step Python cost again, so a 4096-variant sweep in
+#: batches of 512 ran 2.45x the batched hand loop, in one batch 1.0x (docs/performance.md).
+MAX_BATCH = None
 #: Default bound on the memory of the batches running at once (bytes).
 DEFAULT_MAX_MEMORY = 1_000_000_000
 #: How many variants' |e|(t) the figure overlays.
@@ -297,7 +300,8 @@ def batchable(spec) -> bool:
 
 def variant_bytes(spec, blocks, metric: str | None) -> tuple:
     """(bytes one variant needs in a batch, what they are for the message): the logged error
-    signal (8 bytes x components x rows) plus the state buffers of the solver stages."""
+    signal (8 bytes x components x rows) plus the state buffers of the solver stages and the
+    signal buffers of a stage with the kernels' temporaries (4 copies of every output)."""
     cfg = spec.simulation
     rows = cfg.n_steps // cfg.log_every + 2
     size = 0
@@ -307,11 +311,13 @@ def variant_bytes(spec, blocks, metric: str | None) -> tuple:
             if b.name == owner and port in b.outputs:
                 size = b.outputs[port].size
     n_states = sum(b.n_states for b in blocks)
+    signals = sum(port.size for b in blocks for port in b.outputs.values())
     logged = 8 * size * rows
-    work = 8 * n_states * 12
+    work = 8 * (n_states * 12 + signals * 4)
     return logged + work, (f"{_mb(logged + work)} ({metric}: {size} value(s) x {rows} rows"
-                           f" logged, plus {n_states} states)" if metric else
-                           f"{_mb(work)} ({n_states} states)")
+                           f" logged, plus {n_states} states and {signals} signal values)"
+                           if metric else f"{_mb(work)} ({n_states} states, {signals} signal "
+                                          "values)")
 
 
 def parse_size(text) -> int:
@@ -348,7 +354,7 @@ def plan_batches(specs, blocks, metric, *, sequential=False, workers=1,
                 f"{_mb(per_batch)} (--max-memory {_mb(max_memory)} over {max(1, workers)} "
                 f"worker(s)); raise --max-memory, use fewer --workers or log less often "
                 f"(simulation.log_every)")
-        limit = min(MAX_BATCH, per_batch // max(need, 1), batch_size or MAX_BATCH)
+        limit = min(per_batch // max(need, 1), batch_size or len(members))
         if workers > 1 and batch_size is None:           # at least one batch per worker
             limit = min(limit, math.ceil(len(members) / workers))
         limit = max(1, limit)

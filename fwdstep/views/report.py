@@ -205,6 +205,7 @@ def report_html(run_dir: str) -> str:
         parts.append("<h2>Metrics</h2>")
         m = s.get("metrics")
         parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
+        parts += _limits(s.get("limits"))
         parts += _animation(r, run_dir)
         parts.append("<h2>Figures</h2>")
         parts += _figures(r, run_dir)
@@ -233,6 +234,32 @@ def report_html(run_dir: str) -> str:
             f"<title>fwdstep report: {html.escape(title)}</title><style>{_CSS}</style></head>"
             f"<body>{''.join(parts)}<p style=\"color:#888;font-size:.8em\">{_MARK}</p>"
             "</body></html>\n")
+
+
+def _limits(record) -> list:
+    """The "Operating limits" table of a single run (fwdstep.run.limits): per limit and joint,
+    the usage (max |signal| / limit; above 1: beyond it), in red where exceeded."""
+    if not record or isinstance(record[0].get("exceeded"), list):
+        return []
+    head = ("<tr><th>block.port</th><th>limit</th><th>unit</th>" +
+            "".join(f"<th>{html.escape(j)}</th>" for j in record[0]["joints"]) +
+            "<th>first beyond [s]</th></tr>")
+    rows = []
+    for e in record:
+        cells = []
+        for u, lo, hi in zip(e["usage"], e["lower"], e["upper"]):
+            bad = u is not None and u > 1.0
+            text = "-" if u is None else f"{u:.3g}"
+            bounds = f"[{lo:.4g}, {hi:.4g}]" if lo is not None else ""
+            cells.append(f'<td class="num{" bad" if bad else ""}" title="{bounds}">{text}</td>')
+        first = e["first_exceeded_t"]
+        rows.append(f"<tr><td>{html.escape(e['block'])}.{html.escape(e['port'])}</td>"
+                    f"<td>{html.escape(e['what'])}</td><td>{html.escape(e['unit'])}</td>"
+                    + "".join(cells) + f"<td>{'-' if first is None else f'{first:.6g}'}</td></tr>")
+    note = ("<p>Usage per joint: " + html.escape(record[0]["usage_definition"]) +
+            " for symmetric limits, |q - centre| / half-range for positions; above 1 the "
+            "joint went beyond its limit (red).</p>")
+    return ["<h2>Operating limits</h2>", note, f"<table>{head}{''.join(rows)}</table>"]
 
 
 def _numbers(row: dict) -> dict:

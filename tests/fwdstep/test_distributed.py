@@ -172,8 +172,10 @@ def test_memory_budget_counts_what_is_logged(path):
     specs = [load_spec(path, {"K": k}) for k in range(1, 17)]
     blocks = instantiate_variants(specs)
     # e.y: 2 numbers x (150 steps / 3 + 2) rows x 8 bytes = 832 B, plus 12 states x 8 bytes
-    # x 12 solver buffers (arm 4, ref 4, adapt 4)
-    per_variant = 2 * 52 * 8 + 12 * 8 * 12
+    # x 12 solver buffers (arm 4, ref 4, adapt 4), plus 4 buffers of every block output
+    signals = sum(port.size for b in blocks[0] for port in b.outputs.values())
+    assert signals > 12
+    per_variant = 2 * 52 * 8 + 12 * 8 * 12 + 4 * 8 * signals
     assert len(plan_batches(specs, blocks, "e.y", max_memory=16 * per_variant)) == 1
     assert len(plan_batches(specs, blocks, "e.y", max_memory=16 * per_variant - 1)) == 2
     assert len(plan_batches(specs, blocks, "e.y", max_memory=8 * per_variant,
@@ -183,6 +185,7 @@ def test_memory_budget_counts_what_is_logged(path):
     message = str(info.value)
     assert f"{per_variant / 1e6:.3g} MB" in message and "--max-memory 0.001 MB" in message
     assert "832 B" not in message and "52 rows" in message
+    assert f"{signals} signal values" in message
 
 
 def test_cli_max_memory(path, tmp_path, capsys):

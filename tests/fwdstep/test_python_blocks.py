@@ -27,6 +27,14 @@ scipy_linalg = pytest.importorskip("scipy.linalg")
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
+@pytest.fixture(autouse=True)
+def object_mode_in_the_loop(monkeypatch):
+    """These tests are about the compiled loop calling object-mode blocks: keep it from
+    picking the NumPy path (fwdstep.compiled.driver.PICK_NUMPY_FOR_OBJECT_MODE)."""
+    from fwdstep.compiled import driver
+    monkeypatch.setattr(driver, "PICK_NUMPY_FOR_OBJECT_MODE", False)
+
+
 class ScipyLeak(Block):
     """Leaky integrator driven through scipy: dx/dt = -k x + expit(u), with a rotation.
 
