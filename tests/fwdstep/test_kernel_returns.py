@@ -161,8 +161,12 @@ def test_a_batch_axis_of_another_length_is_refused(tmp_path):
 
 
 def test_an_objmode_block_narrowing_mid_run_on_the_compiled_backend(blocks, tmp_path,
-                                                                   numba_cache):
+                                                                   numba_cache, monkeypatch):
+    """Object mode inside the compiled loop (where compiling cannot help, runs take the
+    NumPy path: switched off here to exercise the compiled loop's own check)."""
     pytest.importorskip("numba")
+    from fwdstep.compiled import driver
+    monkeypatch.setattr(driver, "PICK_NUMPY_FOR_OBJECT_MODE", False)
     d = fwdstep.load_diagram(_diagram(tmp_path, "NarrowLaterTestBlock"))
     with pytest.raises(BlockRuntimeError) as info:
         fwdstep.simulate(d, backend="compiled")
