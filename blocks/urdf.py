@@ -105,6 +105,26 @@ def _description(block, robot: str, urdf: str, locked_joints):
     return path, locked
 
 
+#: budgets of a robot description: its file and its links (rigid-body algorithms, the
+#: base-parameter identification and its samples grow with them; a 200-link URDF took
+#: 2.8 GB before this limit).  The shipped robots have 12 (UR5) and 13 (Panda) links.
+MAX_URDF_BYTES = 64 * 2**20
+MAX_URDF_LINKS = 128
+
+
+def _over_budget(path: str) -> str | None:
+    """Why the URDF at ``path`` is too large to build, checked before parsing; or None."""
+    size = os.path.getsize(path)
+    if size > MAX_URDF_BYTES:
+        return (f"is {size / 2**20:.0f} MiB; the limit of a robot description is "
+                f"{MAX_URDF_BYTES >> 20} MiB")
+    with open(path, "rb") as fh:
+        links = fh.read().count(b"<link")
+    if links > MAX_URDF_LINKS:
+        return f"has {links} links; the limit is {MAX_URDF_LINKS}"
+    return None
+
+
 @functools.lru_cache(maxsize=32)
 def _load(path: str, locked: tuple, gravity: float):
     """(model, data, model without gravity, its data): joints in ``locked`` fixed at the
@@ -112,6 +132,9 @@ def _load(path: str, locked: tuple, gravity: float):
     every pinocchio call fills anew, shared by all blocks of one robot (so variants of a sweep
     that differ only in numbers batch together)."""
     import pinocchio as pin
+    too_large = _over_budget(path)
+    if too_large is not None:
+        return too_large
     try:
         with captured_stderr() as log:        # urdfdom's C++ log lines, with build paths
             full = pin.buildModelFromUrdf(path)

@@ -207,6 +207,7 @@ def report_html(run_dir: str) -> str:
         parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
         parts += _limits(s.get("limits"))
         parts += _animation(r, run_dir)
+        parts += _linear(run_dir)
         parts.append("<h2>Figures</h2>")
         parts += _figures(r, run_dir)
         parts.append("<h2>Signals recorded</h2>")
@@ -303,6 +304,38 @@ def _sweep_extras(run_dir: str, has_run: bool) -> list:
                    f"{_img(figure_bytes(c.figure, 'png'), 'image/png', 'variants compared')}"
                    f"<figcaption>{len(picked)} of {len(runs)} saved variants, differences "
                    f"against {html.escape(picked[0].label)}</figcaption></figure>")
+    return out
+
+
+def _linear(run_dir: str) -> list:
+    """What ``fwdstep linearize`` wrote for this diagram (its default folder is the run's
+    ``linear/``): the time, inputs and outputs, the poles, the margins and the Bode figure."""
+    import json
+    folder = os.path.join(run_dir, "linear")
+    try:
+        with open(os.path.join(folder, "linear.json"), encoding="utf-8") as fh:
+            data = json.load(fh)
+        poles = [complex(re_, im) for re_, im in data["poles"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    rows = [{"name": "linearised at t [s]", "value": data.get("t")},
+            {"name": "inputs", "value": ", ".join(data.get("inputs", []))},
+            {"name": "outputs", "value": ", ".join(data.get("outputs", []))},
+            {"name": "opened at", "value": ", ".join(data.get("opened", [])) or "(closed loop)"},
+            {"name": "states", "value": len(data.get("states", []))}]
+    margins = data.get("margins") or {}
+    for key in ("gain_margin_db", "phase_margin_deg"):
+        if margins.get(key) is not None:
+            rows.append({"name": key.replace("_", " "), "value": margins[key]})
+    shown = sorted(poles, key=lambda z: -z.real)[:12]
+    pole_rows = [{"pole": f"{z.real:.6g} {z.imag:+.6g}j"} for z in shown]
+    out = ["<h2>Linear analysis</h2>", _table(rows, ["name", "value"]),
+           f"<p>Rightmost {len(shown)} of {len(poles)} poles:</p>", _table(pole_rows, ["pole"])]
+    bode = os.path.join(folder, "bode.png")
+    if os.path.isfile(bode) and not os.path.islink(bode):
+        with open(bode, "rb") as fh:
+            out.append(f"<figure>{_img(fh.read(), 'image/png', 'Bode')}"
+                       "<figcaption>fwdstep linearize: gain and phase</figcaption></figure>")
     return out
 
 

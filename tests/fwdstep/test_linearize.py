@@ -288,3 +288,20 @@ def test_theorem7_learned_frequency_is_a_notch():
         gains[theta] = np.abs(m.frequency_response(w)[:, 0, 0])
     assert gains[9.0][2] <= 1e-12 * gains[9.0].max()
     assert gains[0.0][2] >= 0.5 * gains[0.0].max()
+
+
+def test_the_report_shows_the_linearisation_written_into_the_run(tmp_path):
+    """fwdstep linearize into the run's linear/ folder, then fwdstep report: the page lists
+    the poles of linear.json (the rightmost first) and embeds the Bode figure."""
+    from fwdstep.cli.arguments import main
+    run = tmp_path / "run"
+    assert main(["run", "diagrams/pid_classic.yaml", "-o", str(run), "-q", "--no-plots",
+                 "--set", "simulation.t_final=0.2"]) == 0
+    assert main(["linearize", "diagrams/pid_classic.yaml", "--input", "tau.y", "--output",
+                 "e.y", "--at", "0.1", "-o", str(run / "linear")]) == 0
+    data = json.loads((run / "linear" / "linear.json").read_text())
+    assert main(["report", str(run)]) == 0
+    page = (run / "report.html").read_text()
+    assert "<h2>Linear analysis</h2>" in page and 'alt="Bode"' in page
+    rightmost = max(complex(*p).real for p in data["poles"])
+    assert f"{rightmost:.6g} " in page

@@ -126,6 +126,8 @@ def test_chromium_renders_the_report_images(tmp_path):
     shot = tmp_path / "shot.png"
     proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
                            "--disable-background-networking", "--hide-scrollbars",
+                           "--no-first-run", "--disable-component-update", "--disable-sync",
+                           f"--user-data-dir={tmp_path / 'chromium-profile'}",
                            "--window-size=1200,2400", f"--screenshot={shot}",
                            (out / "report.html").as_uri()],
                           capture_output=True, timeout=120)
