@@ -51,7 +51,7 @@ def read_part(path: str, signals: bool = True) -> dict:
     """The arrays of one finished batch (``parts/*.npz``), checked: a truncated, corrupt or
     hand-made file is one ``OutputError`` naming it (never a traceback, never a pickle)."""
     import zipfile
-    from fwdstep.core.errors import OutputError, printable
+    from fwdstep.core.errors import DamagedFileError, printable
     shown = printable(path)
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -60,12 +60,12 @@ def read_part(path: str, signals: bool = True) -> dict:
             part = {k: data[k] for k in data.files if signals or k != "e"}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile,
             zipfile.LargeZipFile, NotImplementedError) as exc:
-        raise OutputError(f"{shown} cannot be read ({type(exc).__name__}: "
+        raise DamagedFileError(f"{shown} cannot be read ({type(exc).__name__}: "
                           f"{printable(str(exc))[:200]}); delete it to run its variants "
                           "again with --resume") from None
     problem = _part_problem(part)
     if problem:
-        raise OutputError(f"{shown} is not a batch fwdstep wrote: {problem}; delete it to run "
+        raise DamagedFileError(f"{shown} is not a batch fwdstep wrote: {problem}; delete it to run "
                           "its variants again with --resume")
     return part
 
@@ -116,17 +116,17 @@ def read_table(path: str) -> list:
     value is one large cell); an unreadable file is one ``OutputError`` naming it."""
     import csv
     import sys
-    from fwdstep.core.errors import OutputError, printable
+    from fwdstep.core.errors import DamagedFileError, printable
     previous = csv.field_size_limit()
     try:
         csv.field_size_limit(sys.maxsize)
         with open(path, newline="", encoding="utf-8") as fh:
             rows = list(csv.DictReader(fh))
     except (OSError, csv.Error, UnicodeDecodeError) as exc:
-        raise OutputError(f"{printable(path)} cannot be read: {exc}") from None
+        raise DamagedFileError(f"{printable(path)} cannot be read: {exc}") from None
     finally:
         csv.field_size_limit(previous)
     if any(None in row for row in rows):
-        raise OutputError(f"{printable(path)} is not a table fwdstep wrote: a row has more "
+        raise DamagedFileError(f"{printable(path)} is not a table fwdstep wrote: a row has more "
                           "cells than the header")
     return rows

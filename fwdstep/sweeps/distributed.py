@@ -245,7 +245,7 @@ def _on_dask(function, jobs: list, client):
                 except KeyboardInterrupt:
                     raise
                 except Exception as exc:  # noqa: BLE001 - KilledWorker, an error on the worker
-                    text = " ".join(str(exc).split())[:300]
+                    text = " ".join(str(exc).split()).split(". ")[0][:200]   # 1st sentence
                     outcome = WorkerLost(f"{type(exc).__name__} on the Dask cluster: {text}")
                 yield job, outcome
             if done:

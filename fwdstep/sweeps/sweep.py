@@ -697,7 +697,7 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, co
     stream = run_jobs(run_job, jobs, workers=concurrent, client=client)
     try:
         for finished, (job, part) in enumerate(stream, 1):
-            description = _describe(table[job.indices[0]].values, names)
+            description = _shorten(_describe(table[job.indices[0]].values, names), 120)
             if isinstance(part, WorkerLost):      # not written: --resume runs them again
                 _absorb(result, lost_part(job, part.reason))
                 result.lost += len(job.indices)
@@ -823,6 +823,12 @@ def _jsonable(values: dict) -> dict:
             for k, v in values.items()}
 
 
+def _shorten(text: str, limit: int = 40) -> str:
+    """A label for a figure or a progress line: a matrix value's text (360 kB for a 200 x 200
+    matrix) is cut, so drawing it stays cheap; equality is always decided on the full text."""
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
 def _describe(values: dict, names: list) -> str:
     return ", ".join(f"{k}={_text(values[k])}" for k in names if k in values)
 
@@ -866,7 +872,7 @@ def sweep_figure(result: SweepResult):
         if x is None:                                   # expressions: categories in order
             labels = list(dict.fromkeys(_text(r) for r in raw))
             x = np.array([labels.index(_text(r)) for r in raw], dtype=float)
-            ax.set_xticks(range(len(labels)), labels, fontsize=7)
+            ax.set_xticks(range(len(labels)), [_shorten(t) for t in labels], fontsize=7)
         others = [n for n in result.names if n != name]
         series = _series(ok, others)
         for key, (label, marker) in series.items():
@@ -898,7 +904,8 @@ def sweep_figure(result: SweepResult):
     ax = axes[-1]
     traces = sorted(result.traces.items())
     colors = line_colors(len(traces))
-    names = [_describe(result.variants[i].values, result.names) for i, _ in traces]
+    names = [_shorten(_describe(result.variants[i].values, result.names))
+             for i, _ in traces]
     for color, name, (i, (t, norm)) in zip(colors, names, traces):       # one colour each
         ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color, label=name)
     ax.set_xlabel("$t$ [s]")
@@ -919,7 +926,7 @@ def _series(ok: list, others: list) -> dict:
     markers = "os^vD<>ph*"
     if len(keys) > len(markers):
         return {k: ("", "o") for k in keys}
-    return {k: (k, markers[n]) for n, k in enumerate(keys)}
+    return {k: (_shorten(k), markers[n]) for n, k in enumerate(keys)}
 
 
 # ---------------------------------------------------------------------------- command
