@@ -40,8 +40,11 @@ What it promises:
   any other foreign entry, never written through.
 
 A writer that must put files in place while it is still running (a sweep keeping finished
-variants for ``--resume``) can hold ``OutputDir.lock_only(outdir)`` and write each file with
-``fwdstep.core.files.atomic_write`` into the directory itself.
+variants for ``--resume``) holds ``OutputDir.lock_only(outdir)`` and writes each file with
+``out.put(name, write)`` (``name`` may be ``SUBDIR/NAME``): staged in a private directory,
+listed in the manifest, renamed into place, never over an entry the manifest does not list,
+never through a link; ``out.discard(names)`` removes only listed files (``--force``), and a
+failure (a full disk) is one ``OutputError``.
 """
 from __future__ import annotations
 
