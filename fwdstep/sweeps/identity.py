@@ -7,7 +7,8 @@ another ``t_final``, an edited diagram file).  So a sweep records, in its output
 
 * ``files``: the SHA-256 of the diagram file, of every subsystem file it includes and of
   every file a block parameter names (a URDF), by path relative to the diagram's folder;
-* ``plugins``: the SHA-256 of every plugin file loaded (``--plugin``, ``$FWDSTEP_PLUGINS``);
+* ``plugins``: the SHA-256 of every plugin file (``--plugin``, ``$FWDSTEP_PLUGINS``) that
+  defines a block the diagram uses;
 * ``overrides``: every ``--set`` (and ``--backend``) value;
 * ``settings``: the simulation settings as loaded (``t_final``, step, solver, backend, ...);
 * ``sweep``: the grid, the random parameters and their design, samples and seed, the seed
@@ -98,8 +99,8 @@ def sweep_identity(path: str, loader, overrides: dict, all_values: list,
     return {"written_by": "fwdstep sweep",
             "fwdstep": __version__,
             "files": _files(path, loader),
-            "plugins": {p: hashlib.sha256(text.encode()).hexdigest()
-                        for p, text in sorted(plugin_sources().items())},
+            "plugins": {p: hashlib.sha256(text.encode()).hexdigest() for p, text in sorted(
+                plugin_sources({e.cls for e in loader.base.blocks}).items())},
             "overrides": canonical(dict(overrides)),
             "settings": canonical(loader.base.simulation),
             "sweep": canonical(options),
