@@ -697,7 +697,7 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, co
     stream = run_jobs(run_job, jobs, workers=concurrent, client=client)
     try:
         for finished, (job, part) in enumerate(stream, 1):
-            description = _shorten(_describe(table[job.indices[0]].values, names), 120)
+            description = _describe(table[job.indices[0]].values, names, short=True)
             if isinstance(part, WorkerLost):      # not written: --resume runs them again
                 _absorb(result, lost_part(job, part.reason))
                 result.lost += len(job.indices)
@@ -829,7 +829,10 @@ def _shorten(text: str, limit: int = 40) -> str:
     return text if len(text) <= limit else text[:limit - 1] + "…"
 
 
-def _describe(values: dict, names: list) -> str:
+def _describe(values: dict, names: list, short: bool = False) -> str:
+    """'K=20, ell=2'; ``short``: each value cut to 24 characters (labels, progress)."""
+    if short:
+        return ", ".join(f"{k}={_shorten(_text(values[k]), 24)}" for k in names if k in values)
     return ", ".join(f"{k}={_text(values[k])}" for k in names if k in values)
 
 
@@ -904,7 +907,7 @@ def sweep_figure(result: SweepResult):
     ax = axes[-1]
     traces = sorted(result.traces.items())
     colors = line_colors(len(traces))
-    names = [_shorten(_describe(result.variants[i].values, result.names))
+    names = [_describe(result.variants[i].values, result.names, short=True)
              for i, _ in traces]
     for color, name, (i, (t, norm)) in zip(colors, names, traces):       # one colour each
         ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color, label=name)
@@ -926,7 +929,9 @@ def _series(ok: list, others: list) -> dict:
     markers = "os^vD<>ph*"
     if len(keys) > len(markers):
         return {k: ("", "o") for k in keys}
-    return {k: (_shorten(k), markers[n]) for n, k in enumerate(keys)}
+    short = {k: _describe(v.values, others, short=True) for v in ok
+             for k in [_describe(v.values, others)]}
+    return {k: (short[k], markers[n]) for n, k in enumerate(keys)}
 
 
 # ---------------------------------------------------------------------------- command
