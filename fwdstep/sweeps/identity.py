@@ -6,7 +6,8 @@ another ``t_final``, an edited diagram file).  So a sweep records, in its output
 (``sweep-identity.json``, listed in the manifest), everything that decides its numbers:
 
 * ``files``: the SHA-256 of the diagram file, of every subsystem file it includes and of
-  every file a block parameter names (a URDF), by path relative to the diagram's folder;
+  every file a block's ``Param("file")`` names (a URDF), by path relative to the diagram's
+  folder;
 * ``plugins``: the SHA-256 of every plugin file (``--plugin``, ``$FWDSTEP_PLUGINS``) that
   defines a block the diagram uses;
 * ``overrides``: every ``--set`` (and ``--backend``) value;
@@ -34,8 +35,6 @@ from fwdstep.results.sweep_format import IDENTITY_FILE
 
 #: the fields compared, in the order a difference is reported
 FIELDS = ("files", "plugins", "overrides", "settings", "sweep", "variants", "fwdstep")
-#: a block parameter longer than this is no file name
-_MAX_PATH = 4096
 
 
 def _sha256(path: str) -> str:
@@ -70,19 +69,17 @@ def canonical(value):
 
 
 def _files(path: str, loader) -> dict:
-    """Every file that decides the variants' numbers: diagram files read (the loader's
-    document cache, keyed by real path) and files named by block parameters."""
+    """Every file that decides the variants' numbers: the files the loader read (the
+    diagram, its subsystems, the files its blocks' ``Param("file")`` name, e.g. a URDF:
+    ``DiagramSpec.sources``) and, as a fallback, the loader's document cache."""
     home = os.path.dirname(os.path.realpath(path))
     found = {os.path.realpath(path)}
+    for source in getattr(loader.base, "sources", None) or []:
+        if getattr(source, "text", None) is None and isinstance(source.path, str):
+            found.add(os.path.realpath(source.path))
     for key in getattr(loader, "cache", {}):
         if isinstance(key, tuple) and key and isinstance(key[0], str):
             found.add(key[0])
-    for entry in loader.base.blocks:
-        for value in entry.params.values():
-            if isinstance(value, str) and 0 < len(value) < _MAX_PATH and "\x00" not in value:
-                candidate = os.path.abspath(os.path.expanduser(value))
-                if os.path.isfile(candidate):
-                    found.add(os.path.realpath(candidate))
     return {_shown(f, home): _sha256(f) for f in sorted(found)}
 
 

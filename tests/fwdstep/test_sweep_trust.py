@@ -112,7 +112,7 @@ def test_resume_of_the_same_study_fills_in_the_lost_parts(diagram, tmp_path, cap
     table = rows(out)
     assert [r["status"] for r in table] == ["ok"] * 4
     for r in table:                    # e(t) = a exp(-k t): rk4 at h = 0.01 to 1e-9
-        assert float(r["final_abs_error"]) == pytest.approx(float(r["a"]) * np.exp(-0.4),
+        assert float(r["final_error_norm"]) == pytest.approx(float(r["a"]) * np.exp(-0.4),
                                                             rel=1e-8)
 
 
@@ -362,7 +362,7 @@ def test_plugin_sweep_on_dask_and_a_killed_worker(tmp_path, capsys, killer, monk
     assert "worker lost" in table[2]["message"] and "KilledWorker" in table[2]["message"]
     for r in table:
         if r["status"] == "ok":
-            assert float(r["final_abs_error"]) == pytest.approx(
+            assert float(r["final_error_norm"]) == pytest.approx(
                 float(r["a"]) * np.exp(-0.4), rel=1e-8)
 
 
