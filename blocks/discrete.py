@@ -62,6 +62,7 @@ class _Sampled(Block):
     """Shared: the sampling parameters and the sample instants."""
 
     discrete = True
+    samples_through = True           # y after the update at t_k is made from u(t_k)
 
     def _sampling(self, period: float, offset: float) -> None:
         if not period > 0:
@@ -136,6 +137,8 @@ class UnitDelay(_Sampled):
         shape: shape of the signal (list; [] or omitted for a scalar).
         initial: u_{-1}, the output until the second sample (default 0), broadcast to shape.
     """
+
+    samples_through = False          # y after t_k is u(t_{k-1})
 
     params = {**SAMPLING,
               "shape": Param("array", default=None, doc="signal shape, e.g. [2]; default scalar"),
@@ -212,6 +215,7 @@ class DiscreteStateSpace(_Sampled):
         self.declare_state(n + p, np.concatenate([x0, C @ x0]))
         for key, M in zip("ABCD", (A, B, C, D)):
             self.set_param(key, M)
+        self.samples_through = bool(np.any(D != 0))     # y_k = C x_k + D u_k
         self.set_param("template", np.zeros(out_shape if out_shape is not None else (p,)))
         self.set_kernels(output=held_output_tail, derivative=no_change, params=("template",))
 

@@ -69,7 +69,7 @@ def main(argv=None) -> int:
     result = run_sweep(DIAGRAM, variants=variants,
                        overrides={"t_final": args.t_final, "step": args.step, "log_every": 25},
                        workers=args.workers, scheduler=args.scheduler, outdir=sweep_dir,
-                       resume=args.resume,
+                       resume=args.resume, force=not args.resume,   # a re-run starts again
                        progress=lambda text: print(" ", text, file=sys.stderr, flush=True))
     result.write(sweep_dir, plots=False)
     counts = result.counts()

@@ -55,7 +55,7 @@ c.save(os.path.join(OUT, "compare"))
 # --- a saved sweep (fwdstep sweep -o DIR does the same): its variants compare as runs, SWEEP@k
 sweep_dir = os.path.join(OUT, "ell_sweep")
 sw = fwdstep.run_sweep(DIAGRAM, grid={"ell": [1, 3]}, overrides={"t_final": 6},
-                       outdir=sweep_dir, workers=1)
+                       outdir=sweep_dir, workers=1, force=True)   # replaces an earlier run
 sw.write(sweep_dir)                           # sweep.csv, sweep.png (|Δq| [rad] on its axes)
 c = fwdstep.compare([f"{sweep_dir}@0,1", os.path.join(OUT, "alpha4")])
 print([run.label for run in c.runs])          # ['ell_sweep@0 (ell=1)', 'ell_sweep@1 (ell=3)', ...]

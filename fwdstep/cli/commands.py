@@ -113,6 +113,8 @@ def cmd_validate(path: str, sets=None) -> int:
     try:
         d = load_diagram(path, _overrides(sets))
         check_log(d)                    # never ok for a run that cannot start
+        from fwdstep.run.events import check_events
+        check_events(d)                 # sample instants, discrete algebraic loops
     except DiagramError as exc:
         for each in [exc] + list(getattr(exc, "more", ())):   # every mistake found, one line each
             _err(str(each))

@@ -54,57 +54,53 @@ def _terminate_as_interrupt():
 
 
 def cmd_sweep(args) -> int:
-    """``fwdstep sweep``: see the module docstring for the options and exit codes.  One
-    sweep per output directory: it is locked for the whole run (``fwdstep.results.outputs``)."""
-    outdir = args.outdir or os.path.join(
-        "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
-    try:
-        with OutputDir.lock_only(outdir, force=True):
-            return _cmd_sweep(args)
-    except OutputError as exc:
-        print(f"fwdstep: {exc}", file=sys.stderr)
-        return 2
-
-
-def _cmd_sweep(args) -> int:
+    """``fwdstep sweep``: see ``fwdstep.sweeps.sweep`` for the options and exit codes.  One
+    sweep per output directory: it is locked for the whole run and every file goes through
+    its transaction (``fwdstep.sweeps.sweep.open_sweep_output``)."""
+    from fwdstep.sweeps.sweep import open_sweep_output
     outdir = args.outdir or os.path.join(
         "out", os.path.splitext(os.path.basename(args.diagram))[0] + "_sweep")
     quiet = getattr(args, "quiet", False)
     resume = getattr(args, "resume", False)
+    dataset = getattr(args, "netcdf", False)
     try:
         grid = parse_grid(args.grid)
         random = parse_random(args.random)
         overrides = _overrides(args.set)
-        _check_outdir(outdir, args.force or resume)
         progress = None if quiet else (lambda text: print(f"  {text}", file=sys.stderr,
                                                           flush=True))
-        with _terminate_as_interrupt():
-            result = run_sweep(
-                args.diagram, grid, random, args.samples, args.seed, overrides,
-                sequential=args.sequential, progress=progress,
-                design=getattr(args, "design", "random"),
-                seed_parameter=getattr(args, "seed_parameter", None),
-                workers=getattr(args, "workers", None),
-                scheduler=getattr(args, "scheduler", None),
-                max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
-                batch_size=getattr(args, "batch_size", None), outdir=outdir, resume=resume,
-                keep_signals=not getattr(args, "no_signals", False),
-                backend=getattr(args, "backend", None))
-    except (DiagramError, OutputError) as exc:
-        print(f"fwdstep: {exc}", file=sys.stderr)
-        return EXIT_INPUT
-    except KeyboardInterrupt as exc:     # before any batch ran: nothing to keep
-        print("fwdstep: interrupted", file=sys.stderr)
-        return 128 + int(getattr(exc, "signum", signal.SIGINT))
-    try:
-        from fwdstep.cli.commands import _command_line
-        record = {"command": _command_line(), "sets": list(args.set or []),
-                  "grid": list(args.grid or []), "random": list(args.random or []),
-                  "samples": args.samples, "seed": args.seed,
-                  "design": getattr(args, "design", "random")}
-        written = result.write(outdir, dataset=getattr(args, "netcdf", False), record=record)
-    except (OSError, OutputError) as exc:
-        print(f"fwdstep: cannot write results to {outdir}: {exc}", file=sys.stderr)
+        with open_sweep_output(outdir, force=args.force, resume=resume) as out, \
+                _terminate_as_interrupt():
+            try:
+                result = run_sweep(
+                    args.diagram, grid, random, args.samples, args.seed, overrides,
+                    sequential=args.sequential, progress=progress,
+                    design=getattr(args, "design", "random"),
+                    seed_parameter=getattr(args, "seed_parameter", None),
+                    workers=getattr(args, "workers", None),
+                    scheduler=getattr(args, "scheduler", None),
+                    max_memory=getattr(args, "max_memory", None) or DEFAULT_MAX_MEMORY,
+                    batch_size=getattr(args, "batch_size", None), outdir=out, resume=resume,
+                    keep_signals=not getattr(args, "no_signals", False),
+                    backend=getattr(args, "backend", None), dataset=dataset)
+            except KeyboardInterrupt as exc:     # before any batch ran: nothing to keep
+                print("fwdstep: interrupted", file=sys.stderr)
+                return 128 + int(getattr(exc, "signum", signal.SIGINT))
+            from fwdstep.cli.commands import _command_line
+            record = {"command": _command_line(), "sets": list(args.set or []),
+                      "grid": list(args.grid or []), "random": list(args.random or []),
+                      "samples": args.samples, "seed": args.seed,
+                      "design": getattr(args, "design", "random")}
+            if result.write_failed:
+                print(f"fwdstep: {one_line(result.write_failed)}; the finished batches "
+                      f"written before are kept in {os.path.join(outdir, PARTS_DIR)}: free "
+                      "space and run again with --resume", file=sys.stderr)
+                with contextlib.suppress(FwdstepError):
+                    result.write(out, plots=False, record=record)   # the table, if room
+                return EXIT_INPUT
+            written = result.write(out, dataset=dataset, record=record)
+    except FwdstepError as exc:
+        print(f"fwdstep: {one_line(str(exc))}", file=sys.stderr)
         return EXIT_INPUT
     counts = result.counts()
     if not quiet:
@@ -116,6 +112,10 @@ def _cmd_sweep(args) -> int:
         if result.interrupted:
             print(f"interrupted: finished batches are in {os.path.join(outdir, PARTS_DIR)}; "
                   "run again with --resume to finish the rest")
+    if result.lost:
+        print(f"fwdstep: {result.lost} variant(s) lost with their worker process (see the "
+              f"'message' column of {os.path.join(outdir, CSV_FILE)}); run again with "
+              "--resume to run them", file=sys.stderr)
     if result.interrupted:
         return 128 + result.signal_number if result.signal_number else EXIT_INTERRUPTED
     if counts.get("error"):
@@ -123,17 +123,6 @@ def _cmd_sweep(args) -> int:
     if counts.get("diverged"):
         return EXIT_DIVERGED
     return EXIT_OK
-
-
-def _check_outdir(outdir: str, force: bool) -> None:
-    if os.path.exists(outdir) and not os.path.isdir(outdir):
-        raise OutputError(f"output directory {outdir} exists and is not a directory")
-    for name in (CSV_FILE, PARTS_DIR):
-        existing = os.path.join(outdir, name)
-        if os.path.exists(existing) and not force:
-            raise OutputError(f"{existing} already exists; pass --resume to finish that sweep, "
-                              "--force to overwrite it or -o to choose another directory")
-
 
 
 # ---------------------------------------------------------------------------- report

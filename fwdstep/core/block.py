@@ -323,6 +323,12 @@ class Block:
     # ------------------------------------------------------------------ time events
     #: True for blocks with discrete states: ``update`` is applied at their event times
     discrete: ClassVar[bool] = False
+    #: discrete blocks: whether the output right after an update at t_k depends on the input
+    #: sampled at t_k (a ZeroOrderHold, a DiscreteStateSpace with D != 0: True; a UnitDelay:
+    #: False).  A loop of such blocks updating at one instant is a discrete algebraic loop,
+    #: refused before the run (``fwdstep.run.events``); None: unknown, the run's fixed point
+    #: decides.
+    samples_through: bool | None = None
 
     def discontinuities(self, t_final: float) -> np.ndarray:
         """Times in [0, t_final] at which this block's outputs or derivatives jump (a Step's

@@ -107,6 +107,11 @@ class OutputError(FwdstepError):
     """Results cannot be written where asked (exists without --force, or escapes OUTDIR)."""
 
 
+class DamagedFileError(OutputError):
+    """A result file fwdstep reads back (result.npz, summary.json, a sweep's part) is
+    truncated, corrupt or not what fwdstep writes; the message names it."""
+
+
 # --------------------------------------------------------------------------- run time
 class SimulationError(FwdstepError):
     """Something went wrong while integrating; ``result`` holds everything up to ``time``."""

@@ -3,6 +3,7 @@ a truncated file (write to a temporary file, then rename)."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 
 from fwdstep.core.errors import OutputError, printable
@@ -42,6 +43,24 @@ def atomic_write(path: str, write, binary: bool = False, commit: bool = True):
         _unlink(tmp)
         raise
     return _Deferred(tmp, path)
+
+
+def atomic_write_path(path: str, write_to) -> str:
+    """``atomic_write`` for writers that want a file name (NetCDF): ``write_to(tmp)``
+    creates ``tmp`` inside a private directory (mode 0700, beside ``path``: nobody can plant
+    a link at that name), which is then renamed over ``path``.  ``path`` itself must not be a
+    symbolic link (a rename would replace the link, never write through it)."""
+    if os.path.islink(path):
+        raise OutputError(f"refusing to write '{printable(path)}': it is a symbolic link")
+    staging = tempfile.mkdtemp(prefix=".tmp-", dir=os.path.dirname(path) or ".")
+    try:
+        tmp = os.path.join(staging, os.path.basename(path))
+        write_to(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return path
 
 
 class _Deferred:

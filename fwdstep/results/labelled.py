@@ -74,15 +74,9 @@ def sweep_dataset(result):
 
 def write_dataset(result, path: str) -> str:
     """Write ``sweep_dataset(result)`` to ``path`` (NetCDF) atomically; returns the path."""
+    from fwdstep.core.files import atomic_write_path
     ds = sweep_dataset(result)
-    tmp = path + ".partial"
-    try:
-        ds.to_netcdf(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write_path(path, ds.to_netcdf)   # never through a link planted beside it
 
 
 def load_sweep(outdir: str):
@@ -90,7 +84,12 @@ def load_sweep(outdir: str):
     ``sweep.nc`` as an xarray Dataset (None when the sweep kept no signals)."""
     import pandas as pd
     from fwdstep.results.sweep_format import CSV_FILE, DATASET_FILE
-    table = pd.read_csv(os.path.join(outdir, CSV_FILE), index_col="variant")
+    from fwdstep.core.errors import OutputError
+    try:
+        table = pd.read_csv(os.path.join(outdir, CSV_FILE), index_col="variant")
+    except (OSError, ValueError) as exc:        # pandas' ParserError is a ValueError
+        raise OutputError(f"{os.path.join(outdir, CSV_FILE)} cannot be read: "
+                          f"{' '.join(str(exc).split())[:200]}") from None
     path = os.path.join(outdir, DATASET_FILE)
     dataset = _xarray().load_dataset(path) if os.path.exists(path) else None
     return table, dataset

@@ -40,8 +40,11 @@ What it promises:
   any other foreign entry, never written through.
 
 A writer that must put files in place while it is still running (a sweep keeping finished
-variants for ``--resume``) can hold ``OutputDir.lock_only(outdir)`` and write each file with
-``fwdstep.core.files.atomic_write`` into the directory itself.
+variants for ``--resume``) holds ``OutputDir.lock_only(outdir)`` and writes each file with
+``out.put(name, write)`` (``name`` may be ``SUBDIR/NAME``): staged in a private directory,
+listed in the manifest, renamed into place, never over an entry the manifest does not list,
+never through a link; ``out.discard(names)`` removes only listed files (``--force``), and a
+failure (a full disk) is one ``OutputError``.
 """
 from __future__ import annotations
 
@@ -60,6 +63,8 @@ import tempfile
 from fwdstep.core.errors import OutputError, printable
 
 MANIFEST_FILE = "manifest.json"
+#: private staging directories of ``OutputDir.put`` inside the output directory
+PUT_PREFIX = ".fwdstep-put-"
 #: files fwdstep wrote before manifests existed (regular files with these names are ours)
 LEGACY_FILES = ("result.npz", "summary.json", "sweep.csv")
 
@@ -121,7 +126,11 @@ class OutputDir:
         staging: for writers that must put files in place while they run."""
         out = cls(outdir, force, expected)
         out._check_target()
-        os.makedirs(out.parent, exist_ok=True)
+        try:
+            os.makedirs(out.parent, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create {printable(out.parent)}: "
+                              f"{exc.strerror or exc}") from None
         out._place()
         out._lock()
         try:
@@ -162,6 +171,12 @@ class OutputDir:
                 os.rename(path, self.target)
             elif kind in ("old", "new") and os.stat(path).st_uid == os.getuid():
                 shutil.rmtree(path, ignore_errors=True)
+        with contextlib.suppress(OSError):      # private directories of ``put``
+            for entry in os.listdir(self.target):
+                path = os.path.join(self.target, entry)
+                if (entry.startswith(PUT_PREFIX) and not os.path.islink(path)
+                        and os.path.isdir(path) and os.stat(path).st_uid == os.getuid()):
+                    shutil.rmtree(path, ignore_errors=True)
 
     def _check_existing(self) -> None:
         if not os.path.isdir(self.target):
@@ -208,13 +223,18 @@ class OutputDir:
             if same:
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
+        self._lock_fd = fd
         started = datetime.datetime.now().isoformat(timespec="seconds")
         command = " ".join(os.path.basename(a) if i == 0 else a
                            for i, a in enumerate(sys.argv))[:200]
-        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}, started {started}: "
-                     f"{command}".encode("utf-8", "replace"))
-        self._lock_fd = fd
+        try:                       # who holds it, for the message of a second run
+            os.ftruncate(fd, 0)
+            os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}, started {started}: "
+                         f"{command}".encode("utf-8", "replace"))
+        except OSError as exc:     # a full disk: nothing was written yet, say so in one line
+            self._unlock()
+            raise OutputError(f"cannot lock the output directory {printable(self.requested)}: "
+                              f"{exc.strerror or exc}") from None
 
     def _unlock(self) -> None:
         if self._lock_fd is None:
@@ -223,6 +243,139 @@ class OutputDir:
             os.unlink(self._lock_path())          # removed while still held: no race
         os.close(self._lock_fd)
         self._lock_fd = None
+
+    # ------------------------------------------------------------------ live writes
+    # Under ``lock_only`` (a writer that puts files in place while it runs, e.g. a sweep's
+    # finished batches): every file goes through ``put``, every removal through ``discard``,
+    # both keeping the directory's manifest.json up to date.
+    def put(self, name: str, write, binary: bool = False) -> str:
+        """Write ``name`` (a file name, or ``SUB/.../NAME``) into the directory now, as one
+        transaction: ``write(fh)`` writes into a private staging directory (mode 0700, where
+        nobody can plant a link), the file is listed in manifest.json, then renamed into
+        place.  Refuses to replace an entry that the manifest does not list (the user's own
+        file, a directory, a symbolic link) and never writes through a symbolic link; a
+        failure (a full disk) is one ``OutputError`` and leaves the old file as it was.
+        Returns the path as the user named it."""
+        def produce(tmp):
+            with open(tmp, "xb" if binary else "x") as fh:
+                write(fh)
+        return self._put(name, produce)
+
+    def put_path(self, name: str, write_to) -> str:
+        """``put`` for writers that want a file name: ``write_to(path)`` creates ``path``
+        (inside the private staging directory)."""
+        return self._put(name, write_to)
+
+    def owned(self, prefix: str = "") -> list:
+        """The files of this directory that fwdstep's manifest lists (sorted), those whose
+        name starts with ``prefix`` (e.g. ``'parts/'``)."""
+        return sorted(n for n in owned_files(self.target) if n.startswith(prefix))
+
+    def discard(self, names) -> None:
+        """Remove fwdstep's own files ``names`` (and unlist them); anything else of the same
+        name -- the user's file, a link, a directory -- is left alone.  Subdirectories left
+        empty are removed."""
+        names = list(names)
+        if not names:
+            return
+        ours = owned_files(self.target)
+        files = self._manifest_files()
+        subdirs = set()
+        try:
+            for n in names:
+                if n in ours:
+                    os.unlink(os.path.join(self.target, n))
+                    if "/" in n:
+                        subdirs.add(n.split("/", 1)[0])
+                files.pop(n, None)
+            self._write_manifest(files)
+        except OSError as exc:
+            raise OutputError(f"cannot remove earlier results in {printable(self.requested)}: "
+                              f"{exc.strerror or exc}") from None
+        for sub in subdirs:
+            with contextlib.suppress(OSError):
+                os.rmdir(os.path.join(self.target, sub))
+
+    def check_subdir(self, sub: str) -> None:
+        """Refuse (one ``OutputError``) a ``sub`` entry of the directory that is not a real
+        directory: a symbolic link (never written through) or a file."""
+        path = os.path.join(self.target, sub)
+        if os.path.islink(path) or (os.path.lexists(path) and not os.path.isdir(path)):
+            raise OutputError(_not_ours(os.path.join(self.requested, sub), path) +
+                              f"; fwdstep keeps files in {sub}/ there")
+
+    def _put(self, name: str, produce) -> str:
+        parts = name.split("/")
+        if len(parts) > 8 or not all(_plain_name(p) for p in parts) or name == MANIFEST_FILE:
+            raise OutputError(f"refusing to write '{printable(name)}': not a plain file name")
+        shown = os.path.join(self.requested, name)
+        final = os.path.join(self.target, name)
+        try:
+            os.makedirs(self.target, exist_ok=True)
+            for k in range(1, len(parts)):         # each folder on the way: a real one
+                sub = "/".join(parts[:k])
+                self.check_subdir(sub)
+                with contextlib.suppress(FileExistsError):
+                    os.mkdir(os.path.join(self.target, sub))
+            if os.path.lexists(final) and name not in owned_files(self.target):
+                raise OutputError(_not_ours(shown, final))
+            staging = tempfile.mkdtemp(prefix=PUT_PREFIX, dir=self.target)
+            try:
+                tmp = os.path.join(staging, parts[-1])
+                produce(tmp)
+                if not stat.S_ISREG(os.lstat(tmp).st_mode):
+                    raise OutputError(f"cannot write {printable(shown)}: the writer made no "
+                                      "regular file")
+                files = self._manifest_files()
+                files[name] = _describe(tmp)
+                self._write_manifest(files, staging)   # listed first: a kill leaves no orphan
+                # the directory that receives it, opened without following a link
+                where = os.open(os.path.join(self.target, *parts[:-1]),
+                                os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW)
+                try:
+                    os.replace(tmp, parts[-1], dst_dir_fd=where)
+                finally:
+                    os.close(where)
+            finally:
+                shutil.rmtree(staging, ignore_errors=True)
+        except OSError as exc:
+            raise OutputError(f"cannot write {printable(shown)}: {exc.strerror or exc}; "
+                              "nothing there was changed") from None
+        return shown
+
+    def _manifest_files(self) -> dict:
+        """The manifest's ``files`` (read once, then kept: the lock is held)."""
+        if getattr(self, "_live", None) is not None:
+            return self._live
+        if foreign_manifest(self.target):
+            raise OutputError(_not_ours(os.path.join(self.requested, MANIFEST_FILE),
+                                        os.path.join(self.target, MANIFEST_FILE)))
+        try:
+            with open(os.path.join(self.target, MANIFEST_FILE), "rb") as fh:
+                files = json.loads(fh.read(1 << 24)).get("files")
+        except FileNotFoundError:
+            files = {n: _describe(os.path.join(self.target, n))
+                     for n in owned_files(self.target)}        # legacy result files
+        except (OSError, ValueError, AttributeError):
+            files = None
+        self._live = dict(files) if isinstance(files, dict) else {}
+        return self._live
+
+    def _write_manifest(self, files: dict, staging: str | None = None) -> None:
+        text = json.dumps({"written_by": "fwdstep", "files": files}, indent=0)
+        own = staging is None
+        if own:
+            staging = tempfile.mkdtemp(prefix=PUT_PREFIX, dir=self.target)
+        try:
+            tmp = os.path.join(staging, MANIFEST_FILE)
+            with open(tmp, "x", encoding="utf-8") as fh:
+                fh.write(text)
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, os.path.join(self.target, MANIFEST_FILE))
+            self._live = files
+        finally:
+            if own:
+                shutil.rmtree(staging, ignore_errors=True)
 
     # ------------------------------------------------------------------ commit
     def commit(self) -> list:
@@ -317,7 +470,7 @@ def foreign_manifest(directory: str) -> bool:
         if not stat.S_ISREG(os.lstat(path).st_mode):
             return True
         with open(path, "rb") as fh:
-            return json.loads(fh.read(1 << 20)).get("written_by") != "fwdstep"
+            return json.loads(fh.read(1 << 24)).get("written_by") != "fwdstep"
     except FileNotFoundError:
         return False
     except (OSError, ValueError, AttributeError):
@@ -367,7 +520,7 @@ def owned_files(directory: str) -> set:
         with open(os.path.join(directory, MANIFEST_FILE), "rb") as fh:
             if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
                 raise OSError
-            listed = set(json.loads(fh.read(1 << 20)).get("files", {}))
+            listed = set(json.loads(fh.read(1 << 24)).get("files", {}))
     except (OSError, ValueError, AttributeError):
         listed = set(LEGACY_FILES)
     out = set()
@@ -384,6 +537,11 @@ def owned_files(directory: str) -> set:
         except OSError:
             pass
     return out
+
+
+def _plain_name(name: str) -> bool:
+    return (bool(name) and name not in (".", "..") and os.path.basename(name) == name
+            and "\x00" not in name)
 
 
 def _not_ours(shown: str, real: str) -> str:

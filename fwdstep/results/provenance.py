@@ -91,9 +91,11 @@ def _inside(path: str, root: str) -> bool:
         return False
 
 
-def copy_sources(spec, outdir: str) -> dict:
+def copy_sources(spec, outdir: str, write=None) -> dict:
     """Copy every file ``spec`` was read from into ``outdir/diagram/``; the record's
-    ``files``, ``includes`` and ``diagram`` (the copy of the top-level file)."""
+    ``files``, ``includes`` and ``diagram`` (the copy of the top-level file).  ``write(name,
+    data)``: how a copy is written (a sweep's ``OutputDir.put``: listed, no link followed);
+    default: an atomic write into ``outdir`` (a fresh staging directory)."""
     layout = _layout(spec)
     files = []
     given = {os.path.abspath(s.path): s.text for s in spec.sources if s.text is not None}
@@ -107,9 +109,12 @@ def copy_sources(spec, outdir: str) -> dict:
         except OSError as exc:
             raise OutputError(f"cannot copy {printable(path)} into the output directory: "
                               f"{exc.strerror}") from None
-        target = os.path.join(outdir, *copy.split("/"))
-        os.makedirs(os.path.dirname(target), exist_ok=True)
-        atomic_write(target, lambda fh, data=data: fh.write(data), binary=True)
+        if write is not None:
+            write(copy, data)
+        else:
+            target = os.path.join(outdir, *copy.split("/"))
+            os.makedirs(os.path.dirname(target), exist_ok=True)
+            atomic_write(target, lambda fh, data=data: fh.write(data), binary=True)
         kind = next(s.kind for s in spec.sources if os.path.abspath(s.path) == path)
         files.append({"copy": copy, "source": path, "kind": kind, "bytes": len(data),
                       "sha256": hashlib.sha256(data).hexdigest()})

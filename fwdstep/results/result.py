@@ -8,7 +8,7 @@ import tempfile
 
 import numpy as np
 
-from fwdstep.core.errors import OutputError, printable
+from fwdstep.core.errors import DamagedFileError, OutputError, printable
 from fwdstep.core.files import atomic_write, safe_path  # noqa: F401  (re-exported for readers of results)
 from fwdstep.core.jsonable import jsonable as _jsonable
 
@@ -298,14 +298,12 @@ def load_result(outdir: str) -> Result:
         if not os.path.isfile(path):
             raise OutputError(f"{outdir} holds no saved run: {os.path.basename(path)} is missing "
                               "(write one with fwdstep run DIAGRAM -o DIR)")
-    try:
-        with open(summ, encoding="utf-8") as fh:
-            summary = json.load(fh)
-        with np.load(npz, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, KeyError) as exc:
-        raise OutputError(f"cannot read the saved run in {outdir}: {exc}") from exc
+    summary = read_summary(summ)
+    arrays = read_arrays(npz)
     batch = int(summary.get("batch") or 1)
+    problem = _arrays_problem(arrays, batch)
+    if problem:
+        raise DamagedFileError(f"{printable(npz)} does not fit {SUMMARY_FILE}: {problem}")
     t = arrays.pop("t")
     signals = {k: (v[:, None] if batch == 1 else v) for k, v in arrays.items()}
     r = Result(t, signals, status=summary.get("status", "ok"),
@@ -321,6 +319,84 @@ def load_result(outdir: str) -> Result:
     r.title = summary.get("title", "")
     r.aliases = summary.get("aliases") or {}
     return r
+
+
+#: the keys of summary.json that readers use, and the JSON kinds each may have
+_SUMMARY_KINDS = {
+    "status": (str,), "message": (str,), "diagram": (str, type(None)), "title": (str,),
+    "parameters": (dict, list, type(None)), "simulation": (dict, type(None)),
+    "t_reached": (int, float, type(None)), "steps": (int,), "batch": (int,),
+    "wall_time_s": (int, float), "metrics": (dict, list, type(None)),
+    "signals": (dict, type(None)), "figures": (dict, type(None)),
+    "signal_labels": (dict, type(None)), "aliases": (dict, type(None)),
+}
+
+
+def read_summary(path: str) -> dict:
+    """summary.json, checked: not JSON, or a key of the wrong kind (a hand edit) is one
+    ``OutputError`` naming the file and the key."""
+    from fwdstep.structure.model import kind_of
+    shown = printable(path)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            summary = json.loads(fh.read(64 << 20))
+    except (OSError, ValueError) as exc:        # JSONDecodeError, UnicodeDecodeError
+        raise DamagedFileError(f"{shown} cannot be read: {printable(str(exc))[:200]}") from None
+    if not isinstance(summary, dict):
+        raise DamagedFileError(f"{shown} is not fwdstep's summary: the top level is "
+                          f"{kind_of(summary)}, not a mapping")
+    for key, kinds in _SUMMARY_KINDS.items():
+        value = summary.get(key)
+        if key in summary and (not isinstance(value, kinds) or isinstance(value, bool)):
+            raise DamagedFileError(f"{shown}: '{key}' is {kind_of(value)}, which fwdstep never "
+                              "writes there (was it edited by hand?)")
+    if summary.get("batch", 1) < 1:
+        raise DamagedFileError(f"{shown}: 'batch' must be 1 or more")
+    for name, panels in (summary.get("figures") or {}).items():
+        if not isinstance(panels, list) or not all(
+                isinstance(p, dict) and isinstance(p.get("signals"), list)
+                and all(isinstance(x, str) for x in p["signals"])
+                and isinstance(p.get("scale", "linear"), str) for p in panels):
+            raise DamagedFileError(f"{shown}: figure '{printable(str(name))}' is not a list of "
+                              "panels {signals: [...], scale: ...}")
+    for key in ("signal_labels", "aliases", "signals"):
+        for name, value in (summary.get(key) or {}).items():
+            if not isinstance(value, {"signal_labels": dict, "aliases": str,
+                                      "signals": list}[key]):
+                raise DamagedFileError(f"{shown}: '{key}' entry '{printable(str(name))}' is "
+                                  f"{kind_of(value)} (was it edited by hand?)")
+    return summary
+
+
+def read_arrays(path: str) -> dict:
+    """The arrays of result.npz, never a pickle; a truncated or corrupt file is one
+    ``OutputError`` naming it."""
+    import zipfile
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not hasattr(data, "files"):
+                raise ValueError("not an .npz archive")
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile,
+            zipfile.LargeZipFile, NotImplementedError) as exc:
+        raise DamagedFileError(f"{printable(path)} cannot be read ({type(exc).__name__}: "
+                          f"{printable(str(exc))[:200]})") from None
+
+
+def _arrays_problem(arrays: dict, batch: int) -> str:
+    t = arrays.get("t")
+    if t is None or t.ndim != 1 or t.dtype.kind not in "fi":
+        return "no time column 't'"
+    for name, v in arrays.items():
+        if v.dtype.kind not in "fiub":
+            return f"signal '{printable(name)}' holds {v.dtype} data"
+        if name == "t":
+            continue
+        if v.ndim < 1 or v.shape[0] != len(t) or (batch > 1 and (v.ndim < 2 or
+                                                                 v.shape[1] != batch)):
+            return (f"signal '{printable(name)}' has shape {v.shape} for {len(t)} times and "
+                    f"{batch} variant(s)")
+    return ""
 
 
 def _figure_summary(result: Result) -> dict:

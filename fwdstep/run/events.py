@@ -161,7 +161,40 @@ def _order_updates(d, events: list) -> None:
         key = tuple(st.block.name for st in ev.updates)
         if key not in cache:
             cache[key] = _levels(ev.updates, reach)
+            if cache[key] is None:
+                _refuse_algebraic_loop(ev, reach, getattr(d, "file", None))
         ev.levels = cache[key]
+
+
+def _refuse_algebraic_loop(ev, reach: dict, file=None) -> None:
+    """Refuse, before the run, a loop of discrete blocks that update at one instant and all
+    pass their sample through (``Block.samples_through``): their new states would be a fixed
+    point that no order of updates reaches.  Loops through a UnitDelay (or a block that
+    does not say) are left to the run's fixed-point iteration."""
+    import networkx as nx
+    through = {st.block.name: st for st in ev.updates if st.block.samples_through is True}
+    g = nx.DiGraph()
+    for name, st in through.items():
+        for i in st.inputs:
+            for source in reach.get(i, frozenset()):
+                if source in through:
+                    g.add_edge(source, name)
+    try:
+        cycle = nx.find_cycle(g)
+    except nx.NetworkXNoCycle:
+        return
+    names = [a for a, _ in cycle]
+    raise ConfigError(f"discrete blocks {', '.join(repr(n) for n in names)} pass their inputs "
+                      f"through to their outputs at the sample instant t = {ev.lo:.6g} in a "
+                      f"loop ({' -> '.join(names + names[:1])}: a discrete algebraic loop); "
+                      "put a UnitDelay in the loop", file=file, block=names[0])
+
+
+def check_events(d) -> None:
+    """What ``plan_events`` refuses (too many sample instants, a discrete algebraic loop),
+    found without running: ``fwdstep validate`` never says ok to a run that cannot start."""
+    cfg = d.spec.simulation
+    plan_events(d, cfg.step, cfg.n_steps)
 
 
 def _levels(updates: list, reach: dict) -> list | None:

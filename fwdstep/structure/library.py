@@ -97,9 +97,7 @@ def _load_file(path: str):
         raise ConfigError(f"plugin '{path}' is not a file")
     if not full.endswith(".py"):
         raise ConfigError(f"plugin '{path}' must be a Python file ending in .py")
-    stem = os.path.splitext(os.path.basename(full))[0]
-    tag = hashlib.sha256(full.encode()).hexdigest()[:10]
-    name = f"fwdstep_plugin_{''.join(c if c.isalnum() else '_' for c in stem)}_{tag}"
+    name = _module_name(full)
     spec = importlib.util.spec_from_file_location(name, full)
     module = importlib.util.module_from_spec(spec)
     module.__fwdstep_plugin__ = path
@@ -138,6 +136,55 @@ def plugin_files(modules=None) -> list:
 def file_sha256(path: str) -> str:
     with open(path, "rb") as fh:
         return hashlib.sha256(fh.read()).hexdigest()
+
+
+def _module_name(full: str) -> str:
+    """The module name of the plugin file at real path ``full`` (the same in every process,
+    so a pickled spec naming a plugin class finds it in a worker)."""
+    stem = os.path.splitext(os.path.basename(full))[0]
+    tag = hashlib.sha256(full.encode()).hexdigest()[:10]
+    return f"fwdstep_plugin_{''.join(c if c.isalnum() else '_' for c in stem)}_{tag}"
+
+
+def plugin_sources(classes=None) -> dict:
+    """The plugin files loaded in this process: real path -> source text (what a worker on
+    another machine needs to load the same blocks, ``load_plugin_sources``); with
+    ``classes``, only the files that define one of them (the blocks a diagram uses)."""
+    out = {}
+    modules = None if classes is None else {c.__module__ for c in classes}
+    for full, module in _plugin_files.items():
+        if modules is not None and module.__name__ not in modules:
+            continue
+        try:
+            with open(full, encoding="utf-8") as fh:
+                out[full] = fh.read()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"plugin '{full}' cannot be read again to send it to the "
+                              f"workers: {exc}") from None
+    return out
+
+
+def load_plugin_sources(sources: dict) -> None:
+    """In a worker process: load plugin files from their text (``plugin_sources`` of the
+    process that sent the jobs), each once, under the module name it had there."""
+    load_library()
+    for full, text in sources.items():
+        if full in _plugin_files or _module_name(full) in sys.modules:
+            continue
+        name = _module_name(full)
+        module = importlib.util.module_from_spec(
+            importlib.util.spec_from_loader(name, loader=None, origin=full))
+        module.__file__ = full
+        module.__fwdstep_plugin__ = full
+        module.__fwdstep_sha256__ = hashlib.sha256(text.encode()).hexdigest()
+        sys.modules[name] = module
+        _plugin_files[full] = module
+        try:
+            exec(compile(text, full, "exec"), module.__dict__)  # noqa: S102 - the user's plugin
+        except BaseException as exc:
+            del sys.modules[name], _plugin_files[full]
+            raise ConfigError(f"plugin '{full}' failed to load in a worker: "
+                              f"{type(exc).__name__}: {exc}") from None
 
 
 def lookup(type_name: str):

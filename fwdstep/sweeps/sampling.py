@@ -19,6 +19,7 @@ gives the same variants.
 from __future__ import annotations
 
 import itertools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -159,8 +160,8 @@ def variant_values(grid: dict, random: dict, samples: int, seed: int,
     if not grid and not random:
         raise ConfigError("nothing to sweep: give --grid NAME=V1,V2,... or --random "
                           "NAME=LOW:HIGH --samples N")
-    n_grid = int(np.prod([len(v) for v in grid.values()], dtype=np.int64)) if grid else 1
-    total = n_grid * max(samples, 1)
+    n_grid = math.prod(len(v) for v in grid.values())      # Python ints: never overflow
+    total = n_grid * max(int(samples), 1)
     if total > MAX_VARIANTS:
         raise ConfigError(f"the sweep has {total} variants; the limit is {MAX_VARIANTS}")
     draws = {}

@@ -56,6 +56,7 @@ Python: ``run_sweep(path, grid={"ell": [1, 2, 3]}, ...)`` returns a ``SweepResul
 """
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -65,7 +66,6 @@ import json
 import math
 import os
 import pickle
-import shutil
 import signal
 import sys
 import time
@@ -75,17 +75,19 @@ import numpy as np
 
 from fwdstep.structure.compiler import _value_key, compile_variants, instantiate_variants, structure_signature
 from fwdstep.core.budgets import BudgetError
-from fwdstep.sweeps.distributed import dask_client, local_cores, run_jobs
+from fwdstep.sweeps.distributed import check_workers, dask_client, local_cores, run_jobs
 from fwdstep.core.errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
-                     OutputError)
+                                 OutputError, printable)
 from fwdstep.results.result import batch_error_metrics
-from fwdstep.core.files import atomic_write, safe_path
+from fwdstep.results.outputs import OutputDir, owned_files
 from fwdstep.sweeps.sampling import (MAX_VARIANTS, parse_grid, parse_random, split_values,  # noqa: F401
                        variant_seeds, variant_values)
 from fwdstep.run.simulate import SimulationInterrupted, simulate
 from fwdstep.sweeps.variants import VariantSpecs
-from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE, METRICS, RECORD_FILE,  # noqa: F401
-                                          PARTS_DIR, cell_text as _text)
+from fwdstep.results.sweep_format import (CSV_FILE, DATASET_FILE, FIGURE_FILE,  # noqa: F401
+                                          IDENTITY_FILE, METRICS, PARTS_DIR, RECORD_FILE,
+                                          part_name, read_part, cell_text as _text)
+from fwdstep.sweeps.identity import check_identity, sweep_identity
 
 #: No fixed largest batch: a group runs in as few batches as the memory allows
 #: (``variant_bytes`` per variant, ``--max-memory`` shared by the batches running at once):
@@ -127,6 +129,8 @@ class SweepResult:
     keep_signals: bool = False                     # parts hold every variant's error signal
     signal_info: dict = field(default_factory=dict)  # the error signal's name, label, unit
     base_spec: object = None                       # the diagram as loaded (its record)
+    lost: int = 0                                  # variants whose worker died
+    write_failed: str = ""                         # a part could not be written (disk full)
 
     def counts(self) -> dict:
         out: dict = {}
@@ -162,14 +166,21 @@ class SweepResult:
         from fwdstep.results.labelled import sweep_dataset
         return sweep_dataset(self)
 
-    def write(self, outdir: str, plots: bool = True, dataset: bool = False,
+    def write(self, outdir, plots: bool = True, dataset: bool = False,
               record: dict | None = None) -> list:
         """Write sweep.csv, sweep.png, (``dataset=True``, when signals were kept) sweep.nc,
         and sweep.json with the copy of the diagram as run (``diagram/``) and the record of
         what made the sweep (``fwdstep.results.provenance``; ``record``: what only the
-        caller knows, e.g. the command line) into ``outdir``; returns the paths written."""
-        os.makedirs(outdir, exist_ok=True)
-        written = self._write_record(outdir, record)
+        caller knows, e.g. the command line) into ``outdir`` (a directory name, or the
+        ``OutputDir`` of ``open_sweep_output``) through the output transaction
+        (``fwdstep.results.outputs``: locked, listed in the manifest, no link followed,
+        nothing of the user's replaced); returns the paths written."""
+        if not isinstance(outdir, OutputDir):
+            with OutputDir.lock_only(outdir, force=True, expected=[
+                    CSV_FILE, FIGURE_FILE, DATASET_FILE, RECORD_FILE]) as out:
+                return self.write(out, plots, dataset, record)
+        out = outdir
+        written = self._write_record(out, record)
         rows = self.rows()
         buf = io.StringIO()
         columns = ["variant", *self.names, "batch", "status", "diverged_at", *METRICS,
@@ -178,31 +189,33 @@ class SweepResult:
         writer.writeheader()
         for row in rows:
             writer.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in row.items()})
-        path = safe_path(outdir, CSV_FILE)
-        atomic_write(path, lambda fh: fh.write(buf.getvalue()))
-        written.append(path)
+        written.append(out.put(CSV_FILE, lambda fh: fh.write(buf.getvalue())))
         if dataset and self.has_signals():
-            from fwdstep.results.labelled import write_dataset
-            written.append(write_dataset(self, safe_path(outdir, DATASET_FILE)))
+            ds = self.to_xarray()
+            written.append(out.put_path(DATASET_FILE, ds.to_netcdf))
         if plots and self.metric_signal is not None and any(v.metrics for v in self.variants):
-            written.append(plot_sweep(self, outdir))
+            from fwdstep.results.plotting import figure_bytes
+            data = figure_bytes(sweep_figure(self), "png")
+            written.append(out.put(FIGURE_FILE, lambda fh: fh.write(data), binary=True))
         return written
 
-    def _write_record(self, outdir: str, record: dict | None) -> list:
+    def _write_record(self, out: OutputDir, record: dict | None) -> list:
         if self.base_spec is None:
             return []
         from fwdstep.results import provenance
-        copies = provenance.copy_sources(self.base_spec, outdir)
+        copied = []
+
+        def put(name: str, data: bytes) -> None:         # diagram/...: the transaction too
+            copied.append(out.put(name, lambda fh: fh.write(data), binary=True))
+        copies = provenance.copy_sources(self.base_spec, out.target, write=put)
         prov = provenance.record_spec(self.base_spec, copies, record,
                                       backend=self.settings.get("backend"))
         doc = {"diagram": copies["diagram"], "provenance": prov,
                "sweep": {"parameters": list(self.names),
                          "variants": [_jsonable(v.values) for v in self.variants],
                          "counts": self.counts(), "wall_time_s": round(self.wall_time, 6)}}
-        path = safe_path(outdir, RECORD_FILE)
         text = json.dumps(doc, indent=2)
-        atomic_write(path, lambda fh: fh.write(text))
-        return [path] + [os.path.join(outdir, *f["copy"].split("/")) for f in copies["files"]]
+        return [out.put(RECORD_FILE, lambda fh: fh.write(text))] + copied
 
     def has_signals(self) -> bool:
         return self.keep_signals and any(v.status in ("ok", "diverged") for v in self.variants)
@@ -210,10 +223,10 @@ class SweepResult:
     def iter_parts(self):
         """Every finished batch's outcome (dict of arrays), from memory or from disk."""
         yield from self.parts
-        if self.outdir is not None:
-            for path in sorted(glob.glob(os.path.join(self.outdir, PARTS_DIR, "*.npz"))):
-                with np.load(path, allow_pickle=False) as data:
-                    yield dict(data)
+        if self.outdir is not None:       # only the parts fwdstep's manifest lists
+            for name in sorted(owned_files(self.outdir)):
+                if name.startswith(PARTS_DIR + "/") and name.endswith(".npz"):
+                    yield read_part(os.path.join(self.outdir, name))
 
 
 # ---------------------------------------------------------------------------- planning
@@ -232,13 +245,28 @@ class BatchJob:
     # compiled backend: the batches differ in structure (sizes), so each runs the program
     # whose sizes are run-time values (one compile for them all), not its own scalar code
     sizes_at_run_time: bool = False
+    #: plugin files of this process (real path -> source text), sent to Dask workers, which
+    #: load them before the specs (which name plugin classes) are unpickled
+    plugins: dict = field(default_factory=dict)
 
     def __getstate__(self) -> dict:
         """Sent to a worker without the blocks (they may hold unpicklable closures); the
-        worker builds them again from the specs (``instantiate_variants``)."""
-        return {**self.__dict__, "blocks": None}
+        worker builds them again from the specs (``instantiate_variants``).  With plugins the
+        specs travel as bytes, unpickled by ``ready`` once the plugins are loaded."""
+        state = {**self.__dict__, "blocks": None}
+        if self.plugins and not isinstance(self.specs, bytes):
+            state["specs"] = pickle.dumps(self.specs, protocol=pickle.HIGHEST_PROTOCOL)
+        return state
+
+    def ready(self) -> None:
+        """In the worker: load the plugin files it was sent, then the specs."""
+        if isinstance(self.specs, bytes):
+            from fwdstep.structure.library import load_plugin_sources
+            load_plugin_sources(self.plugins)
+            self.specs = pickle.loads(self.specs)
 
     def variant_blocks(self) -> list:
+        self.ready()
         if self.blocks is None:
             self.blocks = instantiate_variants(self.specs, {})
         return self.blocks
@@ -298,10 +326,11 @@ def batchable(spec) -> bool:
     return cfg.solver in TABLEAUX and getattr(cfg, "backend", "numpy") in ("numpy", "compiled")
 
 
-def variant_bytes(spec, blocks, metric: str | None) -> tuple:
+def variant_bytes(spec, blocks, metric: str | None, logged_only: bool = False) -> tuple:
     """(bytes one variant needs in a batch, what they are for the message): the logged error
     signal (8 bytes x components x rows) plus the state buffers of the solver stages and the
-    signal buffers of a stage with the kernels' temporaries (4 copies of every output)."""
+    signal buffers of a stage with the kernels' temporaries (4 copies of every output)
+    (``logged_only``: the signal alone)."""
     cfg = spec.simulation
     rows = cfg.n_steps // cfg.log_every + 2
     size = 0
@@ -313,7 +342,7 @@ def variant_bytes(spec, blocks, metric: str | None) -> tuple:
     n_states = sum(b.n_states for b in blocks)
     signals = sum(port.size for b in blocks for port in b.outputs.values())
     logged = 8 * size * rows
-    work = 8 * (n_states * 12 + signals * 4)
+    work = 0 if logged_only else 8 * (n_states * 12 + signals * 4)
     return logged + work, (f"{_mb(logged + work)} ({metric}: {size} value(s) x {rows} rows"
                            f" logged, plus {n_states} states and {signals} signal values)"
                            if metric else f"{_mb(work)} ({n_states} states, {signals} signal "
@@ -371,6 +400,7 @@ def _mb(n: float) -> str:
 def run_job(job: BatchJob) -> dict:
     """Run one batch (in this process or a worker); returns its outcome as a dict of arrays
     (what ``OUTDIR/parts/*.npz`` holds)."""
+    job.ready()
     outcomes = _run_members(job, list(range(len(job.indices))))
     n = len(job.indices)
     part = {"indices": np.asarray(job.indices, dtype=np.int64),
@@ -460,7 +490,8 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
               max_memory=DEFAULT_MAX_MEMORY, batch_size: int | None = None,
               outdir: str | None = None, resume: bool = False,
               keep_signals: bool = True, variants: list | None = None,
-              backend: str | None = None) -> SweepResult:
+              backend: str | None = None, force: bool = False,
+              dataset: bool = False) -> SweepResult:
     """Run every variant of the diagram at ``path``; see the module docstring.
 
     ``grid`` maps parameter names to lists of values; ``random`` maps names to
@@ -494,63 +525,161 @@ def run_sweep(path: str, grid: dict | None = None, random: dict | None = None,
         for values, s in zip(all_values, variant_seeds(len(all_values), seed)):
             values[seed_parameter] = s
         names.append(seed_parameter)
-    loader = VariantSpecs(path, overrides)   # each variant's spec derived from one load
-    base = loader.base
-    for name in names:
-        if name not in base.parameters and "." not in name:   # paths: load_spec checks them
-            raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
-                              f"'{name}'; parameters are: {', '.join(base.parameters)}",
-                              file=base.file)
-        if name in overrides:
-            raise ConfigError(f"parameter '{name}' is both swept and set with --set")
-    specs, blocks = [], []
-    for values in all_values:
-        try:
-            spec, built = loader.load(values)
-            blocks.append(built)
-        except DiagramError as exc:
-            shown = ", ".join(f"{k}={_text(v)}" for k, v in values.items())
-            raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
-                            line=exc.line, block=exc.block, port=exc.port) from None
-        specs.append(spec)
-    table = [Variant(i, values) for i, values in enumerate(all_values)]
-    compiled = any(s.simulation.backend == "compiled" for s in specs)
-    if compiled:
-        _need_numba(path)
-        if workers is None and client is None and scheduler is None:
-            workers = 1                 # numba's threads already use every core
-    own_client = client is None and scheduler is not None
-    if own_client:
-        client = dask_client(scheduler)
-    try:
-        return _run_planned(path, names, all_values, specs, blocks, base, table, client,
-                            workers, sequential, max_memory, batch_size, outdir, resume,
-                            keep_signals, progress, wall0)
-    finally:
+    if not all_values:
+        raise ConfigError("nothing to sweep: the list of variants is empty")
+    if len(all_values) > MAX_VARIANTS:
+        raise ConfigError(f"the sweep has {len(all_values)} variants; the limit is "
+                          f"{MAX_VARIANTS}")
+    with contextlib.ExitStack() as stack:
+        out = outdir
+        if outdir is not None and not isinstance(outdir, OutputDir):
+            out = stack.enter_context(open_sweep_output(outdir, force=force, resume=resume))
+        elif resume and outdir is None:
+            raise ConfigError("--resume needs the output directory of the interrupted sweep "
+                              "(-o)")
+        loader = VariantSpecs(path, overrides)   # each variant's spec derived from one load
+        base = loader.base
+        for name in names:
+            if name not in base.parameters and "." not in name:   # paths: load_spec checks
+                raise ConfigError(f"--grid/--random {name}: the diagram has no parameter "
+                                  f"'{name}'; parameters are: {', '.join(base.parameters)}",
+                                  file=base.file)
+            if name in overrides:
+                raise ConfigError(f"parameter '{name}' is both swept and set with --set")
+        identity = sweep_identity(
+            path, loader, overrides, all_values,
+            {"grid": grid, "random": random, "samples": samples, "seed": seed,
+             "design": design, "seed_parameter": seed_parameter,
+             "variants": variants is not None, "keep_signals": bool(keep_signals)})
+        if out is not None and resume:
+            check_identity(out, identity)       # before anything is built or run
+        own_client = client is None and scheduler is not None
         if own_client:
-            client.close()
+            client = stack.enter_context(contextlib.closing(dask_client(scheduler)))
+        if client is not None:
+            check_workers(client, scheduler)     # a cluster without workers: say so
+        specs, blocks = [], []
+        for k, values in enumerate(all_values):
+            try:
+                spec, built = loader.load(values)
+                blocks.append(built)
+            except DiagramError as exc:
+                shown = ", ".join(f"{key}={_text(v)}" for key, v in values.items())
+                raise type(exc)(f"variant {shown}: {exc.message}", file=exc.file,
+                                line=exc.line, block=exc.block, port=exc.port) from None
+            specs.append(spec)
+            if k == min(1, len(all_values) - 1):   # before the rest is built
+                if workers is None and client is None:
+                    workers = 1 if spec.simulation.backend == "compiled" else local_cores()
+                concurrent = (_client_workers(client) if client is not None
+                              else max(1, int(workers)))
+                check_sweep_memory(specs, blocks, base.metrics.get("error"),
+                                   len(all_values), concurrent, parse_size(max_memory),
+                                   in_memory=out is None or dataset)
+        table = [Variant(i, values) for i, values in enumerate(all_values)]
+        if any(s.simulation.backend == "compiled" for s in specs):
+            _need_numba(path)
+        if out is not None and not resume:       # a new sweep: the old one's files go
+            out.discard(out.owned(PARTS_DIR + "/") + out.owned(IDENTITY_FILE))
+            _refuse_foreign_parts(out)
+            out.put(IDENTITY_FILE, lambda fh: json.dump(identity, fh, indent=1))
+        return _run_planned(path, names, all_values, specs, blocks, base, table, client,
+                            concurrent, sequential, max_memory, batch_size, out, resume,
+                            keep_signals, progress, wall0)
 
 
-def _run_planned(path, names, all_values, specs, blocks, base, table, client, workers,
-                 sequential, max_memory, batch_size, outdir, resume, keep_signals, progress,
+@contextlib.contextmanager
+def open_sweep_output(outdir: str, force: bool = False, resume: bool = False):
+    """The output directory of a sweep, locked for the whole sweep (``fwdstep.results.outputs``:
+    one sweep per directory) and checked before anything runs: the user's own sweep.csv,
+    sweep.png, sweep.nc or a link in place of ``parts/`` are never replaced (not even with
+    ``force``); an earlier sweep's files need ``resume`` (finish it) or ``force`` (start again,
+    removing only the files fwdstep's manifest lists).  Yields the ``OutputDir``."""
+    with OutputDir.lock_only(outdir, force=True, expected=[CSV_FILE, FIGURE_FILE, DATASET_FILE,
+                                                           IDENTITY_FILE, RECORD_FILE]) as out:
+        out.check_subdir(PARTS_DIR)
+        earlier = [n for n in (CSV_FILE, IDENTITY_FILE) if n in out.owned()] + \
+            out.owned(PARTS_DIR + "/")
+        if earlier and not (force or resume):
+            raise OutputError(f"{os.path.join(outdir, earlier[0])} already exists; pass "
+                              "--resume to finish that sweep, --force to overwrite it or -o "
+                              "to choose another directory")
+        yield out
+
+
+def _refuse_foreign_parts(out: OutputDir) -> None:
+    """After fwdstep's own parts are removed, a file named like one (the user's) would be
+    taken for a finished batch by readers that look for them: refuse to start."""
+    folder = os.path.join(out.target, PARTS_DIR)
+    ours = set(out.owned(PARTS_DIR + "/"))
+    for path in sorted(glob.glob(os.path.join(glob.escape(folder), "variants-*.npz"))):
+        name = f"{PARTS_DIR}/{os.path.basename(path)}"
+        if name not in ours:
+            raise OutputError(f"refusing to start: {os.path.join(out.requested, name)} is a "
+                              "file fwdstep did not write, named like a finished batch (move "
+                              "it away or choose another directory with -o)")
+
+
+def _parameter_bytes(block) -> int:
+    """Bytes of the numeric arrays a built block holds (its run-time parameters and values)."""
+    arrays = {id(v): v.nbytes for v in (*vars(block.p).values(), *block.values.values())
+              if isinstance(v, np.ndarray)}
+    return sum(arrays.values())
+
+
+def check_sweep_memory(specs, blocks, metric, n: int, workers: int, max_memory: int,
+                       in_memory: bool) -> None:
+    """Refuse, from the first variants built and before the others are, a sweep whose memory
+    exceeds ``max_memory``: one variant in a batch (``variant_bytes``: its logged signal and
+    state buffers, per worker), and all ``n`` variants together -- the block parameters each
+    variant holds for the whole sweep (measured: what the last variant built that the first
+    does not share) and, when the signals are kept in memory (no output directory, or the
+    NetCDF dataset), every variant's logged signal."""
+    per_batch = max_memory // max(1, workers)
+    need, what = variant_bytes(specs[-1], blocks[-1], metric)
+    if need > per_batch:
+        raise BudgetError(
+            f"one variant needs {what}, more than the memory allowed per batch: "
+            f"{_mb(per_batch)} (--max-memory {_mb(max_memory)} over {max(1, workers)} "
+            f"worker(s)); raise --max-memory, use fewer --workers or log less often "
+            f"(simulation.log_every)", file=specs[-1].file)
+    shared = {id(b) for b in blocks[0]} if len(blocks) > 1 else set()
+    own = sorted(((_parameter_bytes(b), b.name) for b in blocks[-1] if id(b) not in shared),
+                 reverse=True)
+    params = sum(size for size, _ in own)
+    logged = variant_bytes(specs[-1], blocks[-1], metric, logged_only=True)[0] \
+        if in_memory else 0
+    total = n * (params + logged)
+    if total > max_memory:
+        pieces = [f"{_mb(params)} of block parameters ({own[0][1]}: {_mb(own[0][0])})"
+                  ] if params else []
+        if logged:
+            pieces.append(f"{_mb(logged)} of {metric} kept in memory")
+        raise BudgetError(
+            f"the sweep needs {_mb(total)} in memory ({n} variants x "
+            f"{' + '.join(pieces)}), more than --max-memory {_mb(max_memory)}: sweep fewer "
+            "variants, log less (simulation.log_every), write to a directory (-o) without "
+            "--netcdf, or raise --max-memory", file=specs[-1].file)
+
+
+def _run_planned(path, names, all_values, specs, blocks, base, table, client, concurrent,
+                 sequential, max_memory, batch_size, out, resume, keep_signals, progress,
                  wall0) -> SweepResult:
+    from fwdstep.structure.library import plugin_sources
+    from fwdstep.sweeps.distributed import WorkerLost
     metric = base.metrics.get("error")
-    if workers is None:
-        workers = local_cores()
-    concurrent = _client_workers(client) if client is not None else max(1, int(workers))
     batches = plan_batches(specs, blocks, metric, sequential=sequential, workers=concurrent,
                            max_memory=parse_size(max_memory), batch_size=batch_size)
     trace_ids = _trace_set(len(table))
     result = SweepResult(diagram=path, names=names, variants=table, batches=[],
                          traces={}, metric_signal=metric,
-                         settings=_plain(base.simulation), outdir=outdir,
+                         settings=_plain(base.simulation),
+                         outdir=None if out is None else out.target,
                          keep_signals=keep_signals and metric is not None,
                          base_spec=base)
-    done = _resume(result, outdir) if resume else set()
-    if outdir is not None and not resume:
-        parts = os.path.join(outdir, PARTS_DIR)
-        if os.path.isdir(parts):
-            shutil.rmtree(parts)
+    done = _resume(result, out) if resume else set()
+    plugins = plugin_sources({e.cls for s in specs[:1] for e in s.blocks}) \
+        if client is not None else {}
     jobs = []
     structures = {structure_signature(blocks[members[0]]) for members in batches} \
         if any(s.simulation.backend == "compiled" for s in specs) else set()
@@ -560,7 +689,7 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
             jobs.append(BatchJob(len(jobs), todo, [specs[i] for i in todo],
                                  [blocks[i] for i in todo], metric, keep_signals, trace_ids,
                                  [all_values[i] for i in todo], parse_size(max_memory),
-                                 len(structures) > 1))
+                                 len(structures) > 1, plugins))
     if done:
         first = max((v.batch for v in table if v.index in done), default=-1) + 1
         for job in jobs:
@@ -568,12 +697,23 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
     stream = run_jobs(run_job, jobs, workers=concurrent, client=client)
     try:
         for finished, (job, part) in enumerate(stream, 1):
-            _store(result, part, outdir)
-            description = _describe(table[job.indices[0]].values, names)
+            description = _describe(table[job.indices[0]].values, names, short=True)
+            if isinstance(part, WorkerLost):      # not written: --resume runs them again
+                _absorb(result, lost_part(job, part.reason))
+                result.lost += len(job.indices)
+            else:
+                try:
+                    _store(result, part, out)
+                except OutputError as exc:        # a full disk: stop, keep what is written
+                    _absorb(result, part)
+                    result.write_failed = str(exc)
+                    stream.close()
+                    break
             result.batches.append((len(job.indices), description))
             if progress is not None:
                 more = ("s", ", ...") if len(job.indices) > 1 else ("", "")
-                progress(f"batch {finished}/{len(jobs)} done: {len(job.indices)} "
+                lost = f" LOST ({part.reason})" if isinstance(part, WorkerLost) else " done"
+                progress(f"batch {finished}/{len(jobs)}{lost}: {len(job.indices)} "
                          f"variant{more[0]} ({description}{more[1]})")
     except KeyboardInterrupt as exc:
         stream.close()
@@ -584,6 +724,19 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, wo
                 v.status = "interrupted"
     result.wall_time = time.perf_counter() - wall0
     return result
+
+
+def lost_part(job: BatchJob, reason: str) -> dict:
+    """The rows of a batch whose worker died: every variant an error 'worker lost: ...'."""
+    n = len(job.indices)
+    return {"indices": np.asarray(job.indices, dtype=np.int64),
+            "batch": np.full(n, job.number, dtype=np.int64),
+            "status": np.array(["error"] * n, dtype=str),
+            "message": np.array([f"worker lost: {reason}; --resume runs it again"] * n,
+                                dtype=str),
+            "diverged_at": np.full(n, np.nan),
+            "metrics": np.full((n, len(METRICS)), np.nan),
+            "values": np.array([json.dumps(_jsonable(v)) for v in job.values], dtype=str)}
 
 
 def _need_numba(path: str) -> None:
@@ -601,13 +754,11 @@ def _client_workers(client) -> int:
         return 1
 
 
-def _store(result: SweepResult, part: dict, outdir: str | None) -> None:
-    """Take a finished batch into the table (and the traces); write it to disk first."""
-    if outdir is not None:
-        directory = os.path.join(outdir, PARTS_DIR)
-        os.makedirs(directory, exist_ok=True)
-        path = safe_path(directory, f"variants-{int(part['indices'][0]):06d}.npz")
-        atomic_write(path, lambda fh: np.savez(fh, **part), binary=True)
+def _store(result: SweepResult, part: dict, out: OutputDir | None) -> None:
+    """Take a finished batch into the table (and the traces); write it to disk first
+    (``OutputDir.put``: listed in the manifest, then renamed into ``parts/``)."""
+    if out is not None:
+        out.put(part_name(part["indices"][0]), lambda fh: np.savez(fh, **part), binary=True)
     else:
         result.parts.append(part)
     _absorb(result, part)
@@ -646,26 +797,21 @@ def _trace_set(n: int) -> frozenset:
     return frozenset(np.unique(np.linspace(0, n - 1, min(MAX_TRACES, n)).astype(int)).tolist())
 
 
-def _resume(result: SweepResult, outdir: str | None) -> set:
-    """Read the finished batches in ``outdir/parts``; check they are this sweep's."""
-    if outdir is None:
-        raise ConfigError("--resume needs the output directory of the interrupted sweep (-o)")
+def _resume(result: SweepResult, out: OutputDir) -> set:
+    """Read the finished batches fwdstep wrote in ``parts/`` (those its manifest lists; the
+    sweep's identity was checked by ``check_identity``); check they are this sweep's."""
     done: set = set()
-    for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                part = {k: data[k] for k in data.files if k != "e"}
-        except (OSError, ValueError, KeyError) as exc:
-            raise OutputError(f"{path} cannot be read ({exc}); delete it to re-run its "
-                              "variants") from None
+    for name in out.owned(PARTS_DIR + "/"):
+        path = os.path.join(out.requested, name)
+        part = read_part(os.path.join(out.target, name), signals=False)
         for k, i in enumerate(part["indices"].tolist()):
             mine = json.dumps(_jsonable(result.variants[i].values)) \
                 if i < len(result.variants) else None
             if mine != str(part["values"][k]):
                 raise ConfigError(
-                    f"{outdir} holds a different sweep: its variant {i} has "
-                    f"{part['values'][k]}, this sweep's has {mine}; use another -o or --force "
-                    "to start again")
+                    f"{out.requested} holds a different sweep: {path} has variant {i} with "
+                    f"{printable(str(part['values'][k]))[:200]}, this sweep's is {mine}; use "
+                    "another -o or --force to start again")
         _absorb(result, part)
         done.update(part["indices"].tolist())
         result.batches.append((len(part["indices"]), "resumed"))
@@ -677,7 +823,16 @@ def _jsonable(values: dict) -> dict:
             for k, v in values.items()}
 
 
-def _describe(values: dict, names: list) -> str:
+def _shorten(text: str, limit: int = 40) -> str:
+    """A label for a figure or a progress line: a matrix value's text (360 kB for a 200 x 200
+    matrix) is cut, so drawing it stays cheap; equality is always decided on the full text."""
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def _describe(values: dict, names: list, short: bool = False) -> str:
+    """'K=20, ell=2'; ``short``: each value cut to 24 characters (labels, progress)."""
+    if short:
+        return ", ".join(f"{k}={_shorten(_text(values[k]), 24)}" for k in names if k in values)
     return ", ".join(f"{k}={_text(values[k])}" for k in names if k in values)
 
 
@@ -691,12 +846,11 @@ def _numeric(values: list):
 
 
 def plot_sweep(result: SweepResult, outdir: str) -> str:
-    """Write sweep.png (``sweep_figure``) into ``outdir``; its path."""
+    """Write sweep.png into ``outdir`` (through its transaction); its path."""
     from fwdstep.results.plotting import figure_bytes
     data = figure_bytes(sweep_figure(result), "png")
-    path = safe_path(outdir, FIGURE_FILE)
-    atomic_write(path, lambda fh: fh.write(data), binary=True)
-    return path
+    with OutputDir.lock_only(outdir, force=True, expected=[FIGURE_FILE]) as out:
+        return out.put(FIGURE_FILE, lambda fh: fh.write(data), binary=True)
 
 
 def sweep_figure(result: SweepResult):
@@ -721,7 +875,7 @@ def sweep_figure(result: SweepResult):
         if x is None:                                   # expressions: categories in order
             labels = list(dict.fromkeys(_text(r) for r in raw))
             x = np.array([labels.index(_text(r)) for r in raw], dtype=float)
-            ax.set_xticks(range(len(labels)), labels, fontsize=7)
+            ax.set_xticks(range(len(labels)), [_shorten(t) for t in labels], fontsize=7)
         others = [n for n in result.names if n != name]
         series = _series(ok, others)
         for key, (label, marker) in series.items():
@@ -753,7 +907,8 @@ def sweep_figure(result: SweepResult):
     ax = axes[-1]
     traces = sorted(result.traces.items())
     colors = line_colors(len(traces))
-    names = [_describe(result.variants[i].values, result.names) for i, _ in traces]
+    names = [_describe(result.variants[i].values, result.names, short=True)
+             for i, _ in traces]
     for color, name, (i, (t, norm)) in zip(colors, names, traces):       # one colour each
         ax.semilogy(t, np.maximum(norm, 1e-300), lw=1, color=color, label=name)
     ax.set_xlabel("$t$ [s]")
@@ -774,7 +929,9 @@ def _series(ok: list, others: list) -> dict:
     markers = "os^vD<>ph*"
     if len(keys) > len(markers):
         return {k: ("", "o") for k in keys}
-    return {k: (k, markers[n]) for n, k in enumerate(keys)}
+    short = {k: _describe(v.values, others, short=True) for v in ok
+             for k in [_describe(v.values, others)]}
+    return {k: (short[k], markers[n]) for n, k in enumerate(keys)}
 
 
 # ---------------------------------------------------------------------------- command

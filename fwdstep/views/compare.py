@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 from dataclasses import dataclass, field
 
@@ -149,12 +150,14 @@ def sweep_runs(outdir: str, wanted: list | None = None, label: str | None = None
     from fwdstep.results.sweep_format import METRICS, PARTS_DIR
     name = label or _short(outdir)
     found: dict = {}
-    for path in sorted(glob.glob(os.path.join(outdir, PARTS_DIR, "*.npz"))):
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                part = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as exc:
-            raise OutputError(f"cannot read {path}: {exc}") from None
+    from fwdstep.results.outputs import owned_files
+    from fwdstep.results.sweep_format import read_part
+    listed = sorted(n for n in owned_files(outdir) if n.startswith(PARTS_DIR + "/"))
+    paths = ([os.path.join(outdir, n) for n in listed] if os.path.lexists(
+        os.path.join(outdir, "manifest.json")) else       # a sweep from before manifests
+        sorted(glob.glob(os.path.join(glob.escape(outdir), PARTS_DIR, "*.npz"))))
+    for path in paths:
+        part = read_part(path)               # damaged: one line naming it
         for k, i in enumerate(part["indices"].tolist()):
             found[i] = (part, k)
     if not found:
@@ -201,10 +204,15 @@ def _has_signal(part: dict, k: int) -> bool:
     return "e" in part and bool(part["has_signal"][k])
 
 
-def _value_text(value) -> str:
+def _value_text(value, limit: int = 40) -> str:
+    """A swept value in a legend entry: a matrix (a 200 x 200 one is 360 kB of text) is cut
+    to ``limit`` characters, so drawing the legend stays cheap."""
     if isinstance(value, float):
         return f"{value:.6g}"
-    return str(value)
+    if isinstance(value, list):
+        value = json.dumps(value)
+    text = str(value)
+    return text if len(text) <= limit else text[:limit - 1] + "\u2026"
 
 
 def _short(path: str) -> str:

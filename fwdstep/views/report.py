@@ -48,7 +48,8 @@ def _value(v) -> str:
         return text if len(text) <= 300 else text[:300] + " …"
     if isinstance(v, dict):
         return "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
-    return "" if v is None else str(v)
+    text = "" if v is None else str(v)
+    return text if len(text) <= 300 else text[:300] + " …"     # a matrix value's text
 
 
 def _table(rows: list, columns: list | None = None) -> str:
@@ -214,9 +215,8 @@ def report_html(run_dir: str) -> str:
         parts.append(_table([{"signal": k, "shape": v} for k, v in
                              (s.get("signals") or {}).items()], ["signal", "shape"]))
     if os.path.isfile(sweep_csv):
-        import csv
-        with open(sweep_csv, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+        from fwdstep.results.sweep_format import read_table
+        rows = read_table(sweep_csv)
         if not parts:
             parts.append(f"<h1>Sweep {html.escape(title)}</h1>")
         counts: dict = {}
@@ -281,8 +281,11 @@ def _sweep_extras(run_dir: str, has_run: bool) -> list:
     from fwdstep.core.errors import FwdstepError
     from fwdstep.results.plotting import figure_bytes
     out = []
+    from fwdstep.core.errors import DamagedFileError
     try:
         runs = sweep_runs(run_dir)
+    except DamagedFileError:
+        raise                          # a damaged part is said in one line, not hidden
     except FwdstepError as exc:
         return [f"<p>{html.escape(f'no comparison of variants: {exc}')}</p>"]
     diagram = getattr(runs[0].result, "diagram_file", None)

@@ -183,7 +183,7 @@ connections:
   - b.y -> a.u
 simulation: {t_final: 1.0, step: 0.01, solver: rk4}
 """
-    with pytest.raises(fwdstep.SimulationError) as err:
+    with pytest.raises(fwdstep.ConfigError) as err:      # before the run: a diagram error
         fwdstep.simulate(_load(tmp_path, text))
     msg = str(err.value)
     assert "discrete algebraic loop" in msg and "'a'" in msg and "'b'" in msg
