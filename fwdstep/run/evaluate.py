@@ -189,7 +189,7 @@ def _count_error(step, y, t) -> BlockRuntimeError:
 def _block_error(step, inner, t, u) -> BlockRuntimeError:
     names = list(step.block.inputs)
     shown = "; ".join(
-        f"{n}={np.array2string(np.asarray(v)[0], precision=4, threshold=12)}"
+        f"{n}={np.array2string(np.asarray(v)[0], precision=4, threshold=12, max_line_width=10**6).replace(chr(10), '')}"
         if v is not None else f"{n}=(not yet computed)" for n, v in zip(names, u))
     return BlockRuntimeError(
         f"block '{step.block.name}' ({step.block.type_name}) raised "

@@ -515,3 +515,20 @@ def test_an_unrecorded_output_is_checked_on_the_compiled_backend(tmp_path):
     assert r.reasons == {1: str(info.value)}                          # its own line
     np.testing.assert_allclose(r["tracked.y"][-1], [[1, 2], [np.nan, np.nan], [3, 6]],
                                rtol=1e-12)                            # g (1, 2) t at t = 1
+
+
+def test_a_block_error_with_matrix_inputs_is_one_line(tmp_path):
+    """Found by the fuzz test: a Solve of a zero (3, 2) matrix raises inside numpy; the
+    message shows its matrix input on one line (numpy prints matrices over several)."""
+    path = tmp_path / "singular.yaml"
+    path.write_text("blocks:\n"
+                    "  A: {type: Constant, value: [[0, 0], [0, 0], [0, 0]]}\n"
+                    "  b: {type: Constant, value: [0, 0, 0]}\n"
+                    "  s: {type: Solve, shape: [3, 2]}\n"
+                    "connections:\n  - A.y -> s.A\n  - b.y -> s.b\n"
+                    "simulation: {t_final: 0.01, step: 0.001, solver: euler}\n")
+    d = fwdstep.load_diagram(str(path))
+    with pytest.raises(fwdstep.BlockRuntimeError) as info:
+        fwdstep.simulate(d)
+    text = str(info.value)
+    assert "\n" not in text and "A=[[0. 0.] [0. 0.] [0. 0.]]" in text, text
