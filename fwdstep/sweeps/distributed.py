@@ -27,6 +27,8 @@ sweep gives up the remaining jobs after as long.
 """
 from __future__ import annotations
 
+import gc
+
 import os
 import signal
 
@@ -68,8 +70,11 @@ def dask_client(scheduler: str):
         return Client(scheduler, timeout="10s")
     except Exception as exc:  # noqa: BLE001 - ValueError, OSError, TimeoutError, ...
         text = " ".join(str(exc).split())[:200] or type(exc).__name__
-        raise ConfigError(f"cannot reach the Dask scheduler at '{scheduler}': {text} (give "
-                          "its address, e.g. tcp://HOST:8786)") from None
+    # the half-made Client is garbage whose __del__ stops its event loop: collected now, not
+    # at some later allocation inside another Dask call (where distributed deadlocks)
+    gc.collect()
+    raise ConfigError(f"cannot reach the Dask scheduler at '{scheduler}': {text} (give "
+                      "its address, e.g. tcp://HOST:8786)")
 
 
 def check_workers(client, scheduler=None, wait: float | None = None) -> None:

@@ -232,3 +232,18 @@ def test_sigterm_keeps_finished_batches_and_resume_finishes(path, tmp_path):
     assert [r["status"] for r in again] == ["ok"] * 10
     for r in done:                        # the finished variants were kept, not re-run
         assert again[int(r["variant"])]["final_error_norm"] == r["final_error_norm"]
+
+
+def test_a_refused_scheduler_leaves_no_half_made_client_behind():
+    """Client('notanaddress') fails half-made; its __del__, run by a later garbage
+    collection inside another Dask call, broke that call (an AssertionError in
+    LoopRunner.start, or a hang in the suite): fwdstep collects it when it refuses."""
+    distributed = pytest.importorskip("distributed")
+    from fwdstep.core.errors import ConfigError
+    from fwdstep.sweeps.distributed import dask_client
+    for _ in range(2):
+        with pytest.raises(ConfigError, match="cannot reach the Dask scheduler at 'notanaddress'"):
+            dask_client("notanaddress")
+        with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None,
+                                      silence_logs=50) as cluster:
+            assert cluster.scheduler_address.startswith("inproc://")
