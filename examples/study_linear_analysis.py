@@ -118,6 +118,45 @@ def theorem7_notch(results):
                                              for k, v in out.items()))
 
 
+def theorems8_9_notches(results):
+    """Theorems 8 and 9 frozen at rest with the learned theta_hat (the coefficients of
+    prod (p^2 + omega_i^2)): a notch at every disturbance frequency; theta_hat = 0 for
+    comparison."""
+    import fwdstep
+    from fwdstep.analysis.linearize import linearize
+    from fwdstep.analysis.linear_outputs import _figure
+    w = np.logspace(-0.3, 1.2, 2000)
+    fig, axes = _figure(2, height=3.0)
+    out = {}
+    for ax, (name, omegas) in zip(axes, (("theorem8", [2.0, 4.0]),
+                                         ("theorem9", [2.0, 3.0, 4.5]))):
+        poly = np.real(np.poly(np.concatenate([1j * np.array(omegas), -1j * np.array(omegas)])))
+        learned = [float(c) for c in poly[::-2][:len(omegas)]]
+        out[name] = {}
+        for label, theta0 in (("theta_hat = 0", 0), ("theta_hat learned", learned)):
+            d = fwdstep.load_diagram(os.path.join(ROOT, "diagrams", f"{name}.yaml"), {
+                "vartheta0": "[3.34, 0.97, 1.04, 0.6]", "qd_amp": [0, 0], "tau_amp": 0,
+                "theta0": theta0})
+            m = linearize(d, inputs=["dist.y[0]"], outputs=["plant.q[0]"], t=0.0)
+            ax.loglog(w, np.abs(m.frequency_response(w)[:, 0, 0]),
+                      label=rf"$\hat\theta$ = {learned}" if theta0 else r"$\hat\theta$ = 0")
+            out[name][label] = [float(abs(m.frequency_response([om])[0, 0, 0]))
+                                for om in omegas]
+        for om in omegas:
+            ax.axvline(om, color="0.5", ls="--", lw=0.8)
+        ax.set_ylim(1e-7, None)
+        ax.set_ylabel(r"$|q_1 / \tau^*_1|$ (rad / N m)")
+        ax.set_title(f"{name}.yaml frozen at rest: notches at the learned frequencies "
+                     f"{', '.join(f'{om:g}' for om in omegas)} rad/s", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(True, which="both", lw=0.3)
+    axes[-1].set_xlabel(r"$\omega$ (rad/s)")
+    fig.savefig(os.path.join(FIG, "linear_theorems8_9_notches.png"), dpi=110)
+    results["theorems8_9_notches"] = out
+    print("theorems 8, 9: |H(j omega_i)| learned", {k: v["theta_hat learned"]
+                                                   for k, v in out.items()})
+
+
 def panda_timing(results):
     try:
         import pinocchio  # noqa: F401
@@ -156,6 +195,7 @@ def main():
     theorem1_point_mass(results)
     theorem1_two_link_along(results)
     theorem7_notch(results)
+    theorems8_9_notches(results)
     panda_timing(results)
 
     def clean(v):

@@ -305,3 +305,22 @@ def test_the_report_shows_the_linearisation_written_into_the_run(tmp_path):
     assert "<h2>Linear analysis</h2>" in page and 'alt="Bode"' in page
     rightmost = max(complex(*p).real for p in data["poles"])
     assert f"{rightmost:.6g} " in page
+
+
+@pytest.mark.parametrize("name,omegas", [("theorem8", [2.0, 4.0]), ("theorem9", [2.0, 3.0, 4.5])])
+def test_theorems_8_and_9_learned_frequencies_are_notches(name, omegas):
+    """Frozen at rest with theta_hat = the coefficients of prod (p^2 + omega_i^2) (computed
+    here with numpy.poly, independently of FrequencyParameters), the disturbance cannot reach
+    q at any omega_i (zeros at +-j omega_i); with theta_hat = 0 it can."""
+    coefficients = np.real(np.poly(np.concatenate([1j * np.array(omegas),
+                                                   -1j * np.array(omegas)])))
+    learned = [float(c) for c in coefficients[::-2][:len(omegas)]]   # p^0, p^2, ... terms
+    gains = {}
+    for label, theta0 in (("none", 0), ("learned", learned)):
+        d = fwdstep.load_diagram(f"diagrams/{name}.yaml", {
+            "vartheta0": "[3.34, 0.97, 1.04, 0.6]", "qd_amp": [0, 0], "tau_amp": 0,
+            "theta0": theta0})
+        m = linearize(d, inputs=["dist.y[0]"], outputs=["plant.q[0]"], t=0.0)
+        gains[label] = np.abs(m.frequency_response(omegas)[:, 0, 0])
+    assert np.all(gains["none"] > 1e-4)
+    assert np.all(gains["learned"] <= 1e-12 * gains["none"]), gains
