@@ -8,6 +8,9 @@ Each repeat runs, in fresh processes and interleaved (so the machine's drift hit
   run          fwdstep run diagrams/theorem1.yaml --no-plots -q
   run+plots    fwdstep run diagrams/theorem1.yaml -q (its three figures)
 and reports the median CPU-time ratios (children's user+sys) run/hand and run+plots/hand+plots.
+The children run without ``PYTHONDONTWRITEBYTECODE`` (set on some machines): a user's
+installation keeps its compiled bytecode, and recompiling fwdstep's ~60 modules from source
+in every process (~0.15 s) would measure that setting, not fwdstep.
 
     python benchmarks/whole_process.py [--repeats 7]
 """
@@ -46,8 +49,9 @@ if {plots}:
 
 def cpu_of(cmd: list, cwd: str) -> float:
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     subprocess.run(cmd, cwd=cwd, check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL, env={**os.environ, "MPLBACKEND": "Agg"})
+                   stderr=subprocess.DEVNULL, env={**env, "MPLBACKEND": "Agg"})
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
