@@ -58,6 +58,7 @@ import shutil
 import socket
 import stat
 import sys
+import time
 import tempfile
 
 from fwdstep.core.errors import OutputError, printable
@@ -211,6 +212,11 @@ class OutputDir:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 holder = _read_small(fd)
+                for _ in range(40):       # the holder writes who it is just after its lock
+                    if holder != "holder unknown":
+                        break
+                    time.sleep(0.005)
+                    holder = _read_small(fd)
                 os.close(fd)
                 raise OutputError(f"output directory {printable(self.requested)} is being "
                                   f"written by another fwdstep run ({printable(holder)}); wait "
