@@ -95,22 +95,31 @@ class OutputDir:
 
     # ------------------------------------------------------------------ enter / leave
     def __enter__(self) -> "OutputDir":
-        self._check_target()
+        self._open()
         try:
-            os.makedirs(self.parent, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"cannot create {printable(self.parent)}: "
-                              f"{exc.strerror}") from None
-        self._place()
-        self._lock()
-        try:
-            self._recover()
-            self._check_existing()
             self.dir = tempfile.mkdtemp(prefix=f"{self.prefix}new-", dir=self.home)
         except BaseException:
             self._unlock()
             raise
         return self
+
+    def _open(self) -> None:
+        """The target checked, its folder made, the lock taken, a killed writer's leftovers
+        recovered and the existing files checked (the lock released if that fails)."""
+        self._check_target()
+        try:
+            os.makedirs(self.parent, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"cannot create {printable(self.parent)}: "
+                              f"{exc.strerror or exc}") from None
+        self._place()
+        self._lock()
+        try:
+            self._recover()
+            self._check_existing()
+        except BaseException:
+            self._unlock()
+            raise
 
     def __exit__(self, *exc) -> bool:
         try:
@@ -126,17 +135,8 @@ class OutputDir:
         """Hold the directory's lock (and check ``expected`` as ``OutputDir`` does) without
         staging: for writers that must put files in place while they run."""
         out = cls(outdir, force, expected)
-        out._check_target()
+        out._open()
         try:
-            os.makedirs(out.parent, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"cannot create {printable(out.parent)}: "
-                              f"{exc.strerror or exc}") from None
-        out._place()
-        out._lock()
-        try:
-            out._recover()
-            out._check_existing()
             yield out
         finally:
             out._unlock()
