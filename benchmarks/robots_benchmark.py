@@ -49,6 +49,25 @@ DIAGRAM = os.path.join(ROOT, "diagrams", "robots", "panda_theorem1.yaml")
 SLOTINE_LI = ("panda_slotine_li.yaml", "ur5_slotine_li.yaml")
 
 
+def _rk4(f, x, t_final: float, step: float, log_every: int):
+    """The hand loops' classical RK4, written out as a user would: (final x, final t, the
+    state every ``log_every`` steps)."""
+    steps = int(round(t_final / step))
+    log = np.empty((steps // log_every + 1, x.size))
+    log[0] = x
+    t, h = 0.0, step
+    for k in range(1, steps + 1):
+        k1 = f(t, x)
+        k2 = f(t + 0.5 * h, x + 0.5 * h * k1)
+        k3 = f(t + 0.5 * h, x + 0.5 * h * k2)
+        k4 = f(t + h, x + h * k3)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        t = k * h
+        if k % log_every == 0:
+            log[k // log_every] = x
+    return x, t, log
+
+
 def hand_loop(d, t_final: float, step: float, log_every: int):
     """The closed loop of panda_theorem1.yaml, integrated by hand with pinocchio calls."""
     import pinocchio as pin
@@ -88,19 +107,7 @@ def hand_loop(d, t_final: float, step: float, log_every: int):
         dx[ith] = -gamma * (Y.T @ s)
         return dx
 
-    steps = int(round(t_final / step))
-    log = np.empty((steps // log_every + 1, x.size))
-    log[0] = x
-    t, h = 0.0, step
-    for k in range(1, steps + 1):
-        k1 = f(t, x)
-        k2 = f(t + 0.5 * h, x + 0.5 * h * k1)
-        k3 = f(t + 0.5 * h, x + 0.5 * h * k2)
-        k4 = f(t + h, x + h * k3)
-        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        t = k * h
-        if k % log_every == 0:
-            log[k // log_every] = x
+    x, t, log = _rk4(f, x, t_final, step, log_every)
     e_final = x[iq] - (b + a * (t / T))
     return log, e_final
 
@@ -144,19 +151,7 @@ def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
         dx[ith] = -gamma * (Y.T @ s)
         return dx
 
-    steps = int(round(t_final / step))
-    log = np.empty((steps // log_every + 1, x.size))
-    log[0] = x
-    t, h = 0.0, step
-    for k in range(1, steps + 1):
-        k1 = f(t, x)
-        k2 = f(t + 0.5 * h, x + 0.5 * h * k1)
-        k3 = f(t + 0.5 * h, x + 0.5 * h * k2)
-        k4 = f(t + h, x + h * k3)
-        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        t = k * h
-        if k % log_every == 0:
-            log[k // log_every] = x
+    x, t, log = _rk4(f, x, t_final, step, log_every)
     e_final = x[iq] - (q0 + amp * np.sin(w * t))
     return log, e_final
 
