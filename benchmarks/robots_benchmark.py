@@ -74,6 +74,7 @@ def hand_loop(d, t_final: float, step: float, log_every: int):
 
     blocks = {s.block.name: s.block for s in d.schedule}
     Yb, adapt, ref, qd = blocks["Y"], blocks["adapt"], blocks["ref"], blocks["qd"]
+    damping = blocks["arm"].p.viscous[0]          # the plant's URDF damping (URDFArm)
     model, data, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
     cols = Yb._columns
     n, p = model.nv, Yb.outputs["Y"].shape[1]
@@ -101,7 +102,7 @@ def hand_loop(d, t_final: float, step: float, log_every: int):
         tau = Y @ theta - K @ s
         dx = np.empty_like(x)
         dx[iq] = v
-        dx[iv] = aba(model, data, q, v, tau)
+        dx[iv] = aba(model, data, q, v, tau - damping * v)
         dx[iz] = zdot
         dx[ii] = e
         dx[ith] = -gamma * (Y.T @ s)
