@@ -53,27 +53,18 @@ compiled backend is not used (the variational stages run with NumPy).
 """
 from __future__ import annotations
 
-import copy
 import math
 import re
 from dataclasses import dataclass
-from types import SimpleNamespace
 
 import numpy as np
 
-from fwdstep.analysis.jacobian import BlockJacobian, _call
+from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS as _OFFSETS, BlockJacobian, \
+    _call, moved_block, richardson as _richardson
 from fwdstep.core.errors import ConfigError, DiagramError
 from fwdstep.core.solvers import IVP_METHODS, TABLEAUX
 
-#: relative step of the loader's and the blocks' parameter differences
-DIFFERENCE_STEP = 1e-3
-_OFFSETS = (1.0, -1.0, 0.5, -0.5)
 _ELEMENT = re.compile(r"^(?P<name>[A-Za-z_][A-Za-z0-9_./]*?)(?:\[(?P<index>[0-9,\s]+)\])?$")
-
-
-def _richardson(f, h):
-    """(4 D(h/2) - D(h)) / 3 from f = values at +h, -h, +h/2, -h/2."""
-    return (4.0 * (f[2] - f[3]) / h - (f[0] - f[1]) / (2.0 * h)) / 3.0
 
 
 # ---------------------------------------------------------------------- parameters
@@ -306,17 +297,7 @@ def _probes(blk, dp: dict, P: int):
             continue
         size = max([np.max(np.abs(getattr(blk.p, n))) for n in dp] + [1.0])
         h = DIFFERENCE_STEP * size / scale
-        row = []
-        for off in _OFFSETS:
-            b = copy.copy(blk)
-            b.p = SimpleNamespace(**vars(blk.p))
-            for n, g in dp.items():
-                arr = np.asarray(getattr(blk.p, n), dtype=float)
-                setattr(b.p, n, arr + off * h * g[:, c].reshape(arr.shape))
-            b.__dict__.pop("_kargs", None)
-            b.finalize(1)
-            row.append(b)
-        probes.append(row)
+        probes.append([moved_block(blk, dp, c, off * h) for off in _OFFSETS])
         steps.append(h)
     return probes, steps
 
@@ -513,13 +494,17 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
     return out
 
 
-def sensitivities(d, params, *, result=None, x0_sensitivity=None):
-    """Run ``d`` (``fwdstep.simulate``, NumPy backend) and its forward sensitivities with
-    respect to ``params`` (names as in the module docstring).  Returns that ``Result`` with
-    ``r.sensitivity(SIGNAL, PARAM)`` (the shape of ``r[SIGNAL]`` followed by the parameter's
-    shape), ``r.sensitivity_matrix(SIGNAL)`` ((T, size, P)) and
-    ``r.metric_gradient(METRIC)``.  ``result``: a Result of this very diagram already run
-    (skips the run)."""
+def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
+                  progress=None, on_compile=None, max_log_bytes=None):
+    """Run ``d`` and its forward sensitivities with respect to ``params`` (names as in the
+    module docstring); ``fwdstep.simulate(d, sensitivities=params)`` is the same call.
+    Returns that ``Result`` with ``r.sensitivity(SIGNAL, PARAM)`` (the shape of
+    ``r[SIGNAL]`` followed by the parameter's shape), ``r.sensitivity_matrix(SIGNAL)``
+    ((T, size, P)) and ``r.metric_gradient(METRIC)``.  ``backend`` (default
+    ``simulation.backend``): "compiled" integrates the variational equations in the
+    compiled stage (``fwdstep.analysis.compiled_sensitivity``; a diagram it cannot take runs
+    on the NumPy path, with a one-line note in ``r.notes``), "numpy" block by block here.
+    ``result``: a Result of this very diagram already run (skips the run; NumPy path)."""
     from fwdstep.run.simulate import simulate
     if d.batch != 1:
         raise ConfigError("sensitivities take a single diagram, not a batch", file=d.file)
@@ -538,14 +523,27 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None):
         P += len(par.elements)
         resolved.append(par)
     loaded = loader_derivative(d, resolved, P)
-    r = simulate(d, backend="numpy") if result is None else result
+    S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
+    parameters = [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]
+    note = None
+    if result is None and (backend or cfg.backend) == "compiled":
+        from fwdstep.analysis.compiled_sensitivity import run_compiled
+        got = run_compiled(d, loaded.p, P, S0, progress, on_compile, max_log_bytes)
+        if not isinstance(got, str):
+            r, signals = got
+            r.sensitivity_data = {"signals": signals, "parameters": parameters}
+            return r
+        note = f"sensitivities computed on the numpy path: {got}"
+    r = simulate(d, backend="numpy", progress=progress, max_log_bytes=max_log_bytes) \
+        if result is None else result
     rows = len(r.t)
     chain = SensitivityChain(d, loaded.p, P)
-    S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
     signals = _integrate(d, chain, S0, cfg.n_steps // cfg.log_every + 2)
     r.sensitivity_data = {
         "signals": {name: arr[:rows] for name, arr in signals.items()},
-        "parameters": [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]}
+        "parameters": parameters}
+    if note is not None:
+        r.notes.append(note)
     return r
 
 
