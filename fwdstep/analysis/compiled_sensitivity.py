@@ -17,7 +17,8 @@ Where a parameter reaches the code:
 
 * a kernel's argument ``block.p.NAME`` moved by the parameter: its entries are leaves of
   their own (not folded into 0, 1, -1 or shared with an equal entry, as the diagram's stage
-  does), seeded with their column of dp;
+  does), seeded with their column of dp (entries of W as well: another value of the
+  parameter with the same pattern of zeros runs the same machine code);
 * a fused linear group's matrix M (``fwdstep.core.linear.plan_fusion``): M is a product of
   the blocks' matrices, so dM/dtheta is the Richardson central difference of the fusion of
   the moved blocks (exact to round-off for the polynomials of degree <= 4 a fusion makes);
@@ -74,7 +75,9 @@ class VariationalStage(backend_numba._ScalarStage):
         j = len(self.columns)
         self.columns.append(values)
         node = self.tr.leaf(f"p{j}", True, values)
-        self.seeds[node.n] = {c: self.tr.const(float(tangent[c])) for c in range(self.P)
+        # the seeds are parameter entries too (not constants written into the code), so
+        # another value of the parameter runs the same machine code
+        self.seeds[node.n] = {c: self._leaf(np.array([tangent[c]])) for c in range(self.P)
                               if tangent[c] != 0.0}
         return node
 

@@ -62,6 +62,7 @@ import numpy as np
 from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS as _OFFSETS, BlockJacobian, \
     _call, moved_block, richardson as _richardson
 from fwdstep.core.errors import ConfigError, DiagramError
+from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS, TABLEAUX
 
 _ELEMENT = re.compile(r"^(?P<name>[A-Za-z_][A-Za-z0-9_./]*?)(?:\[(?P<index>[0-9,\s]+)\])?$")
@@ -526,6 +527,9 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
     S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
     parameters = [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]
     note = None
+    if backend is not None and backend not in BACKENDS:
+        raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}",
+                          file=d.file)
     if result is None and (backend or cfg.backend) == "compiled":
         from fwdstep.analysis.compiled_sensitivity import run_compiled
         got = run_compiled(d, loaded.p, P, S0, progress, on_compile, max_log_bytes)
