@@ -47,9 +47,16 @@ update x+ = update(x-, u) at an event is differentiated with the Richardson diff
 ``Block.update`` in its state and inputs, the inputs' sensitivities coming from the chain
 rule at the event (levels in order, as ``fwdstep.run.events.apply_updates``).  Event times
 are fixed (declared, parameter-independent: a parameter that moves one is refused).  Not
-handled: state events (crossing times that depend on the state), discrete blocks in an
-algebraic loop at an instant (fixed-point iteration), ``solve_ivp`` solvers, batches; the
-compiled backend is not used (the variational stages run with NumPy).
+handled: state events (crossing times that depend on the state: the sensitivities from the
+first located crossing on are NaN, with a note in ``Result.notes``), discrete blocks in an
+algebraic loop at an instant (fixed-point iteration), ``solve_ivp`` solvers, batches.
+
+Backends: with ``backend="compiled"`` (or ``simulation.backend: compiled``) the variational
+equations are compiled into the stage and integrated by the compiled loop
+(``fwdstep.analysis.compiled_sensitivity``: the same derivative, 1e-12 apart); diagrams it
+cannot take (discrete updates, zero crossings, stages that do not trace) run here, on the
+NumPy path, with a one-line note.  ``fwdstep.simulate(d, sensitivities=[...])`` calls
+``sensitivities`` (the run layer loads this module by name).
 """
 from __future__ import annotations
 
@@ -144,6 +151,10 @@ def _moved_value(par: Parameter, element: int, delta: float):
     return v.tolist()
 
 
+#: parsed diagram files, by (path, mtime, size) (``fwdstep.structure.spec._read_document``)
+_PARSED: dict = {}
+
+
 def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     """Richardson differences of the loaded diagram (module docstring) for every column."""
     from fwdstep.run.evaluate import initial_state
@@ -153,7 +164,9 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     base_signature = structure_signature(d.blocks)
     dp: dict = {}
     dx0 = np.zeros((d.n_states, P))
-    cache: dict = {}                  # each file parsed once for all the moved loads
+    cache = _PARSED                   # each file parsed once for all the moved loads
+    while len(cache) > 16:            # (and for the next call: tuning calls again and again)
+        cache.pop(next(iter(cache)))
 
     def start_state(dd):
         ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
@@ -548,7 +561,24 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
         "parameters": parameters}
     if note is not None:
         r.notes.append(note)
+    _after_crossings(r)
     return r
+
+
+def _after_crossings(r) -> None:
+    """A located zero crossing (a state event) moves with the parameters, and that motion
+    is not differentiated here (the steps are integrated as if it were not there): the
+    sensitivities from the first crossing on are NaN, with a note saying so, never a wrong
+    number."""
+    if not r.events:
+        return
+    first = min(r.events, key=lambda e: e.time)
+    late = r.t >= first.time
+    for arr in r.sensitivity_data["signals"].values():
+        arr[late] = np.nan
+    r.notes.append(f"sensitivities from t = {first.time:.6g} s on are not computed (NaN): "
+                   f"block '{first.block}' crosses a zero there ({first.kind}), and how the "
+                   "crossing time moves with the parameters is not differentiated")
 
 
 __all__ = ["sensitivities", "resolve_parameter", "Parameter", "SensitivityChain",

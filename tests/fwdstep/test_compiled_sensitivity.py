@@ -194,3 +194,35 @@ def test_simulate_with_sensitivities_is_fwdstep_sensitivities(tmp_path):
         fwdstep.simulate(d, x0=np.ones(1), sensitivities=["k"])
     with pytest.raises(ConfigError, match="unknown backend 'fast'"):
         fwdstep.simulate(d, backend="fast", sensitivities=["k"])
+
+
+SWITCHED = """
+parameters: {a: 2.1, b: 1.0}
+blocks:
+  x: {type: Integrator, initial: 0, shape: []}
+  fa: {type: Constant, value: a}
+  fb: {type: Constant, value: b}
+  sw: {type: Switch, threshold: 1.0}
+connections: [fb.y -> sw.u1, x.y -> sw.control, fa.y -> sw.u2, sw.y -> x.u]
+simulation: {t_final: 2, step: 0.01, solver: rk4, log_every: 10}
+log: [x.y]
+"""
+
+
+@pytest.mark.parametrize("backend", ["numpy", "compiled"])
+def test_a_state_event_leaves_no_wrong_sensitivity(tmp_path, backend):
+    """x' = a below x = 1, b above: the crossing time 1/a moves with a (dx(T)/da = b/a^2,
+    not the 1/a of a fixed crossing), which is not differentiated: NaN from the crossing
+    on, said in a note; before it, dx/da = x/a = t exactly (x = a t)."""
+    d = fwdstep.load_diagram(_write(tmp_path, SWITCHED))
+    r = fwdstep.simulate(d, backend=backend, sensitivities=["a"])
+    crossing = r.events[0].time
+    assert abs(crossing - 1 / 2.1) < 1e-3         # (located on the step that crossed)
+    s = r.sensitivity("x.y", "a")
+    before = r.t < crossing
+    assert np.isnan(s[~before]).all() and np.isfinite(s[before]).all()
+    assert np.abs(s[before] - r.t[before]).max() < 1e-12
+    assert any("block 'sw' crosses a zero there" in n for n in r.notes)
+    if backend == "compiled":
+        assert "sensitivities computed on the numpy path: block 'sw' (Switch) has zero " \
+               "crossings" in r.notes
