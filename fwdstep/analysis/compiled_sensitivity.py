@@ -145,7 +145,7 @@ def group_derivatives(d, ops, shapes, dp: dict, P: int) -> dict:
     by_block: dict = {}
     for (blk, name), g in dp.items():
         by_block.setdefault(blk, {})[name] = g
-    if not groups:
+    if not groups or not by_block:
         return {}
     out = {id(op): np.zeros((P,) + np.shape(op.M)[1:]) for _, op in groups}
     for c in range(P):

@@ -482,29 +482,29 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
                 x[...] += (hh * bj) * ks[j]
                 S = S + (hh * bj) * Ks[j]
 
-    for n in range(n_steps):
-        t = n * h
-        if not np.all(np.isfinite(x)):
-            break
-        if n in special:
-            for i, sub in enumerate(special[n]):
-                if sub.event is not None:
-                    event(sub.event, max(sub.a, sub.lo))
-                step(sub.a, sub.b - sub.a, sub.lo, sub.hi, i == 0 and n % every == 0)
+    with np.errstate(all="ignore"):   # S may overflow where x does not: a note says so
+        for n in range(n_steps):
+            t = n * h
+            if not np.all(np.isfinite(x)):
+                break
+            if n in special:
+                for i, sub in enumerate(special[n]):
+                    if sub.event is not None:
+                        event(sub.event, max(sub.a, sub.lo))
+                    step(sub.a, sub.b - sub.a, sub.lo, sub.hi, i == 0 and n % every == 0)
+            else:
+                step(t, h, -math.inf, math.inf, n % every == 0)
         else:
-            step(t, h, -math.inf, math.inf, n % every == 0)
-    else:
-        t = n_steps * h
-        end = events.final if events is not None else None
-        ts = t
-        if end is not None:
-            ts = max(t, end.hi)
-            if end.updates:
-                event(end, ts)
-        with np.errstate(all="ignore"):
+            t = n_steps * h
+            end = events.final if events is not None else None
+            ts = t
+            if end is not None:
+                ts = max(t, end.hi)
+                if end.updates:
+                    event(end, ts)
             outputs(ts, x)
-        G, _ = chain.outputs(ts, x[0], S, sig)
-        record(G)
+            G, _ = chain.outputs(ts, x[0], S, sig)
+            record(G)
     return out
 
 
@@ -539,7 +539,6 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
     loaded = loader_derivative(d, resolved, P)
     S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
     parameters = [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]
-    note = None
     if backend is not None and backend not in BACKENDS:
         raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}",
                           file=d.file)
@@ -547,20 +546,30 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
         from fwdstep.analysis.compiled_sensitivity import run_compiled
         got = run_compiled(d, loaded.p, P, S0, progress, on_compile, max_log_bytes)
         if not isinstance(got, str):
-            r, signals = got
-            r.sensitivity_data = {"signals": signals, "parameters": parameters}
-            return r
+            return _attach(*got, parameters)
         note = f"sensitivities computed on the numpy path: {got}"
+    else:
+        note = None
     r = simulate(d, backend="numpy", progress=progress, max_log_bytes=max_log_bytes) \
         if result is None else result
+    if note is not None:
+        r.notes.append(note)
     rows = len(r.t)
     chain = SensitivityChain(d, loaded.p, P)
     signals = _integrate(d, chain, S0, cfg.n_steps // cfg.log_every + 2)
-    r.sensitivity_data = {
-        "signals": {name: arr[:rows] for name, arr in signals.items()},
-        "parameters": parameters}
-    if note is not None:
-        r.notes.append(note)
+    return _attach(r, {name: arr[:rows] for name, arr in signals.items()}, parameters)
+
+
+def _attach(r, signals: dict, parameters: list):
+    """The sensitivities onto the Result, with a note where they are not finite (the
+    variational equations diverged: x is checked against the bound, S is not) and NaN from
+    a zero crossing on (``_after_crossings``)."""
+    r.sensitivity_data = {"signals": signals, "parameters": parameters}
+    bad = [np.flatnonzero(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))
+           for arr in signals.values()]
+    first = min((int(b[0]) for b in bad if b.size), default=None)
+    if first is not None:
+        r.notes.append(f"sensitivities are not finite from t = {r.t[first]:.6g} s on")
     _after_crossings(r)
     return r
 

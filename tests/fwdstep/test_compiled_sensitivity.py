@@ -226,3 +226,35 @@ def test_a_state_event_leaves_no_wrong_sensitivity(tmp_path, backend):
     if backend == "compiled":
         assert "sensitivities computed on the numpy path: block 'sw' (Switch) has zero " \
                "crossings" in r.notes
+
+
+def test_a_stage_that_does_not_trace_takes_the_numpy_path_with_a_note(tmp_path, monkeypatch):
+    from fwdstep.analysis import compiled_sensitivity
+    from fwdstep.compiled.scalarize import Untraceable
+
+    def refuse(*args):
+        raise Untraceable("np.linalg is not traced")
+
+    monkeypatch.setattr(compiled_sensitivity, "variational_stage", refuse)
+    d = fwdstep.load_diagram(_write(tmp_path, DECAY))
+    r = fwdstep.simulate(d, backend="compiled", sensitivities=["k"])
+    assert r.backend == "numpy"
+    assert r.notes == ["sensitivities computed on the numpy path: its variational stage is "
+                       "not compiled (np.linalg is not traced)"]
+    assert np.abs(r.sensitivity("x.y", "k") - (-r.t * 1.5 * np.exp(-0.7 * r.t))).max() < 1e-9
+
+
+def test_sensitivities_that_grow_past_floats_are_said_not_finite(tmp_path):
+    """x' = 360 x from x0 = 1e-305 stays under the bound (1e8) for 2 s, while dx/dx0 =
+    e^(360 t) = x / x0 passes the largest float near t = 1.97: not finite from there on,
+    said in a note (x alone is checked against the bound)."""
+    text = DECAY.replace("{k: 0.7, x0: 1.5}", "{k: -360.0, x0: 1.0e-305}")
+    d = fwdstep.load_diagram(_write(tmp_path, text))
+    for backend in ("numpy", "compiled"):
+        r = fwdstep.simulate(d, backend=backend, sensitivities=["x0"])
+        assert r.status == "ok" and np.abs(r["x.y"]).max() < 1e8
+        s = r.sensitivity("x.y", "x0")
+        first = int(np.flatnonzero(~np.isfinite(s))[0])
+        assert 1.9 < r.t[first] < 2.0 and np.isfinite(s[:first]).all()
+        assert np.allclose(s[:first], r["x.y"][:first] / 1e-305, rtol=1e-12)
+        assert f"sensitivities are not finite from t = {r.t[first]:.6g} s on" in r.notes
