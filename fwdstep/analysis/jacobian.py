@@ -60,8 +60,29 @@ MAX_DERIVATIVE_NODES = 400_000
 #: directions) the block's own kernels are differenced instead, ~30x faster to set up and
 #: within 1e-8 relative (tests/fwdstep/test_jacobian.py, test_linearize.py)
 MAX_EXACT_WORK = 20_000
-#: relative step of the central differences (see the module docstring)
+#: relative step of the central differences (see the module docstring), also of the
+#: parameter differences of ``fwdstep.analysis.sensitivity``
 DIFFERENCE_STEP = 1e-3
+#: the offsets (in steps h) of a Richardson central difference's four points
+OFFSETS = (1.0, -1.0, 0.5, -0.5)
+
+
+def richardson(f, h):
+    """(4 D(h/2) - D(h)) / 3 from f = values at +h, -h, +h/2, -h/2 (``OFFSETS``)."""
+    return (4.0 * (f[2] - f[3]) / h - (f[0] - f[1]) / (2.0 * h)) / 3.0
+
+
+def moved_block(blk, dp: dict, c: int, amount: float):
+    """A copy of ``blk`` with each p array ``name`` moved by amount * dp[name][:, c] (made
+    ready for one variant, ``finalize(1)``); ``blk`` is left as it is."""
+    b = copy.copy(blk)
+    b.p = SimpleNamespace(**vars(blk.p))
+    for n, g in dp.items():
+        arr = np.asarray(getattr(blk.p, n), dtype=float)
+        setattr(b.p, n, arr + amount * g[:, c].reshape(arr.shape))
+    b.__dict__.pop("_kargs", None)
+    b.finalize(1)
+    return b
 
 
 @dataclass
@@ -314,16 +335,26 @@ def forward_tangents(trace: sz.Trace, roots: list, wrt: list) -> list:
     ``wrt``, as nodes of the same trace: one dict per root, column k -> node d root/d wrt[k]
     (missing = identically zero).  Forward mode, node by node in creation order (a
     topological order); sparse: a node carries only the columns it depends on."""
-    column = {leaf.n: k for k, leaf in enumerate(wrt) if isinstance(leaf, sz.Sym)}
-    tangent: dict = {}
     one = trace.const(1.0)
+    return directional_tangents(trace, roots, {leaf.n: {k: one} for k, leaf in enumerate(wrt)
+                                               if isinstance(leaf, sz.Sym)})
+
+
+def directional_tangents(trace: sz.Trace, roots: list, seeds: dict) -> list:
+    """The derivatives of ``roots`` along directions, as nodes of ``trace``: ``seeds`` maps
+    a leaf's node number to its tangent {direction: node} (a leaf not in it: zero); the
+    result is one dict per root, direction -> node (missing = identically zero).  With unit
+    seeds (``forward_tangents``) the directions are the leaves; with seeds that are nodes
+    themselves (the sensitivities S of the state, dp/dtheta of the parameters) the roots'
+    tangents are J S + B: the variational equations
+    (``fwdstep.analysis.compiled_sensitivity``)."""
+    tangent: dict = {}
 
     def of(s):
         if not isinstance(s, sz.Sym):
             return {}
         if s.op == "leaf":
-            k = column.get(s.n)
-            return {} if k is None else {k: one}
+            return seeds.get(s.n, {})
         if s.op == "const":
             return {}
         return tangent[s.n]
@@ -597,5 +628,6 @@ def block_jacobians(blocks, params: dict | None = None) -> dict:
     return {b.name: BlockJacobian(b, params.get(b.name, ())) for b in blocks}
 
 
-__all__ = ["BlockJacobian", "Jacobian", "forward_tangents", "GraphProgram",
-           "block_jacobians", "DIFFERENCE_STEP"]
+__all__ = ["BlockJacobian", "Jacobian", "forward_tangents", "directional_tangents",
+           "GraphProgram", "block_jacobians", "DIFFERENCE_STEP", "OFFSETS", "richardson",
+           "moved_block"]

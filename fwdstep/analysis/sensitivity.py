@@ -47,33 +47,32 @@ update x+ = update(x-, u) at an event is differentiated with the Richardson diff
 ``Block.update`` in its state and inputs, the inputs' sensitivities coming from the chain
 rule at the event (levels in order, as ``fwdstep.run.events.apply_updates``).  Event times
 are fixed (declared, parameter-independent: a parameter that moves one is refused).  Not
-handled: state events (crossing times that depend on the state), discrete blocks in an
-algebraic loop at an instant (fixed-point iteration), ``solve_ivp`` solvers, batches; the
-compiled backend is not used (the variational stages run with NumPy).
+handled: state events (crossing times that depend on the state: the sensitivities from the
+first located crossing on are NaN, with a note in ``Result.notes``), discrete blocks in an
+algebraic loop at an instant (fixed-point iteration), ``solve_ivp`` solvers, batches.
+
+Backends: with ``backend="compiled"`` (or ``simulation.backend: compiled``) the variational
+equations are compiled into the stage and integrated by the compiled loop
+(``fwdstep.analysis.compiled_sensitivity``: the same derivative, 1e-12 apart); diagrams it
+cannot take (discrete updates, zero crossings, stages that do not trace) run here, on the
+NumPy path, with a one-line note.  ``fwdstep.simulate(d, sensitivities=[...])`` calls
+``sensitivities`` (the run layer loads this module by name).
 """
 from __future__ import annotations
 
-import copy
 import math
 import re
 from dataclasses import dataclass
-from types import SimpleNamespace
 
 import numpy as np
 
-from fwdstep.analysis.jacobian import BlockJacobian, _call
+from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS as _OFFSETS, BlockJacobian, \
+    _call, moved_block, richardson as _richardson
 from fwdstep.core.errors import ConfigError, DiagramError
+from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS, TABLEAUX
 
-#: relative step of the loader's and the blocks' parameter differences
-DIFFERENCE_STEP = 1e-3
-_OFFSETS = (1.0, -1.0, 0.5, -0.5)
 _ELEMENT = re.compile(r"^(?P<name>[A-Za-z_][A-Za-z0-9_./]*?)(?:\[(?P<index>[0-9,\s]+)\])?$")
-
-
-def _richardson(f, h):
-    """(4 D(h/2) - D(h)) / 3 from f = values at +h, -h, +h/2, -h/2."""
-    return (4.0 * (f[2] - f[3]) / h - (f[0] - f[1]) / (2.0 * h)) / 3.0
 
 
 # ---------------------------------------------------------------------- parameters
@@ -152,6 +151,10 @@ def _moved_value(par: Parameter, element: int, delta: float):
     return v.tolist()
 
 
+#: parsed diagram files, by (path, mtime, size) (``fwdstep.structure.spec._read_document``)
+_PARSED: dict = {}
+
+
 def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     """Richardson differences of the loaded diagram (module docstring) for every column."""
     from fwdstep.run.evaluate import initial_state
@@ -161,7 +164,9 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     base_signature = structure_signature(d.blocks)
     dp: dict = {}
     dx0 = np.zeros((d.n_states, P))
-    cache: dict = {}                  # each file parsed once for all the moved loads
+    cache = _PARSED                   # each file parsed once for all the moved loads
+    while len(cache) > 16:            # (and for the next call: tuning calls again and again)
+        cache.pop(next(iter(cache)))
 
     def start_state(dd):
         ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
@@ -306,17 +311,7 @@ def _probes(blk, dp: dict, P: int):
             continue
         size = max([np.max(np.abs(getattr(blk.p, n))) for n in dp] + [1.0])
         h = DIFFERENCE_STEP * size / scale
-        row = []
-        for off in _OFFSETS:
-            b = copy.copy(blk)
-            b.p = SimpleNamespace(**vars(blk.p))
-            for n, g in dp.items():
-                arr = np.asarray(getattr(blk.p, n), dtype=float)
-                setattr(b.p, n, arr + off * h * g[:, c].reshape(arr.shape))
-            b.__dict__.pop("_kargs", None)
-            b.finalize(1)
-            row.append(b)
-        probes.append(row)
+        probes.append([moved_block(blk, dp, c, off * h) for off in _OFFSETS])
         steps.append(h)
     return probes, steps
 
@@ -487,39 +482,43 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
                 x[...] += (hh * bj) * ks[j]
                 S = S + (hh * bj) * Ks[j]
 
-    for n in range(n_steps):
-        t = n * h
-        if not np.all(np.isfinite(x)):
-            break
-        if n in special:
-            for i, sub in enumerate(special[n]):
-                if sub.event is not None:
-                    event(sub.event, max(sub.a, sub.lo))
-                step(sub.a, sub.b - sub.a, sub.lo, sub.hi, i == 0 and n % every == 0)
+    with np.errstate(all="ignore"):   # S may overflow where x does not: a note says so
+        for n in range(n_steps):
+            t = n * h
+            if not np.all(np.isfinite(x)):
+                break
+            if n in special:
+                for i, sub in enumerate(special[n]):
+                    if sub.event is not None:
+                        event(sub.event, max(sub.a, sub.lo))
+                    step(sub.a, sub.b - sub.a, sub.lo, sub.hi, i == 0 and n % every == 0)
+            else:
+                step(t, h, -math.inf, math.inf, n % every == 0)
         else:
-            step(t, h, -math.inf, math.inf, n % every == 0)
-    else:
-        t = n_steps * h
-        end = events.final if events is not None else None
-        ts = t
-        if end is not None:
-            ts = max(t, end.hi)
-            if end.updates:
-                event(end, ts)
-        with np.errstate(all="ignore"):
+            t = n_steps * h
+            end = events.final if events is not None else None
+            ts = t
+            if end is not None:
+                ts = max(t, end.hi)
+                if end.updates:
+                    event(end, ts)
             outputs(ts, x)
-        G, _ = chain.outputs(ts, x[0], S, sig)
-        record(G)
+            G, _ = chain.outputs(ts, x[0], S, sig)
+            record(G)
     return out
 
 
-def sensitivities(d, params, *, result=None, x0_sensitivity=None):
-    """Run ``d`` (``fwdstep.simulate``, NumPy backend) and its forward sensitivities with
-    respect to ``params`` (names as in the module docstring).  Returns that ``Result`` with
-    ``r.sensitivity(SIGNAL, PARAM)`` (the shape of ``r[SIGNAL]`` followed by the parameter's
-    shape), ``r.sensitivity_matrix(SIGNAL)`` ((T, size, P)) and
-    ``r.metric_gradient(METRIC)``.  ``result``: a Result of this very diagram already run
-    (skips the run)."""
+def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
+                  progress=None, on_compile=None, max_log_bytes=None):
+    """Run ``d`` and its forward sensitivities with respect to ``params`` (names as in the
+    module docstring); ``fwdstep.simulate(d, sensitivities=params)`` is the same call.
+    Returns that ``Result`` with ``r.sensitivity(SIGNAL, PARAM)`` (the shape of
+    ``r[SIGNAL]`` followed by the parameter's shape), ``r.sensitivity_matrix(SIGNAL)``
+    ((T, size, P)) and ``r.metric_gradient(METRIC)``.  ``backend`` (default
+    ``simulation.backend``): "compiled" integrates the variational equations in the
+    compiled stage (``fwdstep.analysis.compiled_sensitivity``; a diagram it cannot take runs
+    on the NumPy path, with a one-line note in ``r.notes``), "numpy" block by block here.
+    ``result``: a Result of this very diagram already run (skips the run; NumPy path)."""
     from fwdstep.run.simulate import simulate
     if d.batch != 1:
         raise ConfigError("sensitivities take a single diagram, not a batch", file=d.file)
@@ -538,15 +537,57 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None):
         P += len(par.elements)
         resolved.append(par)
     loaded = loader_derivative(d, resolved, P)
-    r = simulate(d, backend="numpy") if result is None else result
+    S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
+    parameters = [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]
+    if backend is not None and backend not in BACKENDS:
+        raise ConfigError(f"unknown backend '{backend}'; backends are: {', '.join(BACKENDS)}",
+                          file=d.file)
+    if result is None and (backend or cfg.backend) == "compiled":
+        from fwdstep.analysis.compiled_sensitivity import run_compiled
+        got = run_compiled(d, loaded.p, P, S0, progress, on_compile, max_log_bytes)
+        if not isinstance(got, str):
+            return _attach(*got, parameters)
+        note = f"sensitivities computed on the numpy path: {got}"
+    else:
+        note = None
+    r = simulate(d, backend="numpy", progress=progress, max_log_bytes=max_log_bytes) \
+        if result is None else result
+    if note is not None:
+        r.notes.append(note)
     rows = len(r.t)
     chain = SensitivityChain(d, loaded.p, P)
-    S0 = loaded.x0 if x0_sensitivity is None else x0_sensitivity
     signals = _integrate(d, chain, S0, cfg.n_steps // cfg.log_every + 2)
-    r.sensitivity_data = {
-        "signals": {name: arr[:rows] for name, arr in signals.items()},
-        "parameters": [(p.text, p.columns.start, p.columns.stop, p.shape) for p in resolved]}
+    return _attach(r, {name: arr[:rows] for name, arr in signals.items()}, parameters)
+
+
+def _attach(r, signals: dict, parameters: list):
+    """The sensitivities onto the Result, with a note where they are not finite (the
+    variational equations diverged: x is checked against the bound, S is not) and NaN from
+    a zero crossing on (``_after_crossings``)."""
+    r.sensitivity_data = {"signals": signals, "parameters": parameters}
+    bad = [np.flatnonzero(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))
+           for arr in signals.values()]
+    first = min((int(b[0]) for b in bad if b.size), default=None)
+    if first is not None:
+        r.notes.append(f"sensitivities are not finite from t = {r.t[first]:.6g} s on")
+    _after_crossings(r)
     return r
+
+
+def _after_crossings(r) -> None:
+    """A located zero crossing (a state event) moves with the parameters, and that motion
+    is not differentiated here (the steps are integrated as if it were not there): the
+    sensitivities from the first crossing on are NaN, with a note saying so, never a wrong
+    number."""
+    if not r.events:
+        return
+    first = min(r.events, key=lambda e: e.time)
+    late = r.t >= first.time
+    for arr in r.sensitivity_data["signals"].values():
+        arr[late] = np.nan
+    r.notes.append(f"sensitivities from t = {first.time:.6g} s on are not computed (NaN): "
+                   f"block '{first.block}' crosses a zero there ({first.kind}), and how the "
+                   "crossing time moves with the parameters is not differentiated")
 
 
 __all__ = ["sensitivities", "resolve_parameter", "Parameter", "SensitivityChain",

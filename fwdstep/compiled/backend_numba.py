@@ -552,7 +552,7 @@ class _ScalarStage:
                 if _in_python(op.block) and not _traced_only(op.block):
                     raise sz.Untraceable(f"block {op.block.name!r} runs in object mode")
                 k = op.block.kernels
-                block_args[id(op)] = [self._param(getattr(op.block.p, n))
+                block_args[id(op)] = [self._kernel_param(op.block, n)
                                       for n in k.params] + list(k.static)
 
         def call(fn, op, inputs):
@@ -568,13 +568,13 @@ class _ScalarStage:
                 else:
                     v.extend((sig[term] if term in done else zeros(term)).reshape(-1))
             M = np.asarray(op.M, dtype=np.float64)
-            nz = np.any(M != 0.0, axis=0)
+            nz = self._group_mask(op, M)
             y = []
             for j in range(M.shape[2]):
                 acc = None
                 for i in range(M.shape[1]):
                     if nz[i, j]:
-                        term = v[i] * self._leaf(M[:, i, j])
+                        term = v[i] * self._group_entry(op, M, i, j)
                         acc = term if acc is None else acc + term
                 y.append(tr.const(0.0) if acc is None else acc)
             return y
@@ -647,6 +647,8 @@ class _ScalarStage:
             roots += nodes
             self.checked += nodes
         self.der = der
+        self._extend(x, sig, logs, shapes, roots)
+        der = self.der
         need_d = tr.needed([node for _, node in der])
         need_r = tr.needed(roots) - need_d
         inv = sorted(n for n in need_d | need_r if tr.nodes[n].invariant)
@@ -659,10 +661,33 @@ class _ScalarStage:
             W[:, j] = c
         self.W = W
         # the workspace ws of a variant: x_i (N), k_1..k_S (S N), W's row, Z
-        self.n_states = d.n_states
+        self.n_states = self._total_states(d)
         self.n_columns = len(self.columns)
-        self.ow = d.n_states + n_stages * d.n_states
+        self.ow = self.n_states + n_stages * self.n_states
         self.oz = self.ow + self.n_columns
+
+    # hooks of a stage that integrates more than the diagram's state (the variational
+    # equations of fwdstep.analysis.compiled_sensitivity); here: the diagram's stage
+    def _kernel_param(self, blk, name: str):
+        """The kernel argument ``blk.p.<name>`` as leaves."""
+        return self._param(getattr(blk.p, name))
+
+    @staticmethod
+    def _group_mask(op, M):
+        """The entries of a fused group's matrix written into the code."""
+        return np.any(M != 0.0, axis=0)
+
+    def _group_entry(self, op, M, i: int, j: int):
+        """Entry (i, j) of a fused group's matrix as a node."""
+        return self._leaf(M[:, i, j])
+
+    def _extend(self, x, sig, logs, shapes, roots) -> None:
+        """Add derivative entries (``self.der``), records (``self.records``, widening
+        ``self.log_width``) and their roots, after the diagram's own."""
+
+    def _total_states(self, d) -> int:
+        """The entries of the integrated state (x first)."""
+        return d.n_states
 
     def _leaf(self, values):
         """A parameter entry with these values over the variants: a column of W, loaded
@@ -919,7 +944,7 @@ def object_mode_only(d) -> str | None:
 
 
 def build_program(d, n_rows: int, plan=None, scalar: bool | None = None,
-                  notify=None) -> CompiledProgram:
+                  notify=None, stage=None) -> CompiledProgram:
     """Generate, load (from the cache when possible) and bind the compiled run of ``d``;
     ``plan``: its ``fwdstep.run.events.plan_events`` (None: no declared times), whose split
     steps the loop runs as the NumPy path does (``event_arrays``).  ``scalar``: trace the
@@ -928,12 +953,15 @@ def build_program(d, n_rows: int, plan=None, scalar: bool | None = None,
     sizes are run-time values.  ``notify(what, operations, estimate)`` is called before
     anything never compiled before is compiled (what: "scalar stage" or "array code"; the
     number of scalar operations or block calls; about how many seconds it takes); the
-    caller times ``CompiledProgram.compile`` after it."""
+    caller times ``CompiledProgram.compile`` after it.  ``stage``: a ``_ScalarStage`` to run
+    instead of the diagram's own (one integrating more than the diagram's state, whose first
+    ``d.n_states`` entries are x: only those are checked against the bound); an LLVM fault
+    then raises ``Untraceable`` instead of taking the array code."""
     check_compilable(d)
     if scalar is None:
         scalar = not d.sizes_at_run_time
     with _per_variant_kernels(d):
-        return _build_program(d, n_rows, plan, scalar, notify)
+        return _build_program(d, n_rows, plan, scalar, notify, stage)
 
 
 @contextlib.contextmanager
@@ -960,7 +988,8 @@ def _per_variant_kernels(d):
             blk.kernels = kernels
 
 
-def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledProgram:
+def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
+                   stage=None) -> CompiledProgram:
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
@@ -969,8 +998,11 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledP
     ops, fused = _ops_for(d.schedule, shapes, d.constant_signals)
     from fwdstep.run.finite import unlogged_signals      # every other output: finite, or status 2
     logged = [d.signal_index[name] for name in d.logged]
-    st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
-        else None
+    if stage is not None:
+        st, N = stage, stage.n_states
+    else:
+        st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
+            else None
     stage_fn = None
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
@@ -985,7 +1017,7 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledP
                      "    " + call.format("0")]
         gen = _Gen()
         skeleton = compiled_cache.load(_module_source(gen, None, [], record, [], stage_der,
-                                                      final))
+                                                      final, stage is not None))
         loop_new = not compiled_cache.compiled_before(skeleton)
 
         def announce():
@@ -998,6 +1030,9 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledP
         try:
             stage_fn = compile_stage(st, before=announce)
         except Exception as exc:  # noqa: BLE001 - an LLVM fault falls back, never stops a run
+            if stage is not None:
+                raise sz.Untraceable(f"the stage was not compiled ({type(exc).__name__}: "
+                                     f"{exc}"[:200] + ")") from None
             compiled_cache.warn(f"scalar stage not compiled ({type(exc).__name__}: "
                                 f"{exc}"[:200] + "); running the array code")
             st = None
@@ -1037,7 +1072,10 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None) -> CompiledP
     consts = {"h": cfg.step, "every": cfg.log_every, "bound": cfg.bound, "a": a,
               "c": np.array([0.0] + [ch for ch, _ in stages]),
               "b": np.array([b for _, b in final_coeffs]),
-              "I": np.array(gen.ints + [0], dtype=np.int64),
+              # (the loop of a stage given to build_program reads I[0]: the entries of its
+              # state checked against the bound, the diagram's x)
+              "I": np.array(gen.ints + [d.n_states if stage is not None else 0],
+                            dtype=np.int64),
               # the tableau itself, for (sub-)steps of another size (times hs in the loop)
               "A": np.array([list(row) + [0.0] * (S - len(row)) for row in tab.a]),
               "C": np.array(tab.c, dtype=float),
@@ -1091,7 +1129,10 @@ _PYTHON_HEADER = ("from numba import objmode as _objmode",
                   "from fwdstep.run.python_blocks import output as _pyout, derivative as _pyder")
 
 
-def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> str:
+def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
+                   bound_first: bool = False) -> str:
+    """The text of the generated loop module; ``bound_first``: only the first I[0] entries
+    of the state are checked against the bound (a stage given to ``build_program``)."""
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
     fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t, ev_r"
@@ -1183,7 +1224,8 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final) -> s
                                                 "        return 0, n, row"] + stage_der
     inner = sub + ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
-              "    if not (abs(w) <= bound):", "        bad = True"]
+              "    if " + ("i < I[0] and " if bound_first else "") + "not (abs(w) <= bound):",
+              "        bad = True"]
     run_body += ["    for q in range(qs, q1):"] + ["        " + line for line in inner]
     run_body += ["    if bad:", "        return 1, n + 1, row"]
     run_body.append("return 0, n1, row")

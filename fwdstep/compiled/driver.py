@@ -46,11 +46,13 @@ class CompiledBackend(Backend):
     procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
     (``plan_events``); discrete updates are applied here, between the chunks the loop ends
     at them (status 3, ``backend_numba.event_arrays``).  A batch runs its variants in
-    parallel, each on its own row of the state, each stopping where it fails."""
+    parallel, each on its own row of the state, each stopping where it fails.  ``stage``:
+    a scalar stage integrating more than x (``backend_numba.build_program``); ``x`` is then
+    the view of the diagram's entries of the integrated state ``prog.xn``."""
 
     scan_log = False
 
-    def __init__(self, d: CompiledDiagram, plan, on_compile=None):
+    def __init__(self, d: CompiledDiagram, plan, on_compile=None, stage=None):
         super().__init__(d, plan)
         try:
             from fwdstep.compiled import backend_numba
@@ -69,9 +71,10 @@ class CompiledBackend(Backend):
                 on_compile("compiling", {"diagram": d.file, "what": what,
                                          "operations": operations, "estimate_s": estimate})
 
-        self.prog = prog = backend_numba.build_program(d, n_rows, plan, notify=notify)
+        self.prog = prog = backend_numba.build_program(d, n_rows, plan, notify=notify,
+                                                       stage=stage)
         B = d.batch
-        self.x = prog.xn                      # (B, N); each variant runs on its own row
+        self.x = prog.xn[:, :d.n_states]      # (B, N); each variant runs on its own row
         self.x[...] = d.x0
         self.t_log, self.logs = prog.t_log, prog.logs
         self.rows, self.codes, self.n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))

@@ -70,6 +70,10 @@ from fwdstep.structure.compiler import CompiledDiagram
 #: backends that plug into this loop from a higher layer, loaded by name on first use (as
 #: block plugins are): the run layer never imports them.  With "numpy", BACKENDS.
 PLUGGED_BACKENDS = {"compiled": "fwdstep.compiled.driver"}
+#: ``simulate(d, sensitivities=[...])`` hands the run to this module's ``sensitivities``
+#: (the analysis layer, loaded by name: the run layer never imports it), which runs the
+#: diagram through this module's ``simulate``/``run`` with the variational equations
+PLUGGED_SENSITIVITIES = "fwdstep.analysis.sensitivity"
 
 
 def _plugged(name: str, d):
@@ -151,7 +155,8 @@ def run(d: CompiledDiagram, backend: Backend, progress=None, x0=None,
 def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
              fuse: bool = True, backend: str | None = None,
              log_dir: str | None = None, max_log_bytes: int | None = None,
-             record_states: bool = False, on_compile=None) -> Result:
+             record_states: bool = False, on_compile=None,
+             sensitivities: list | str | None = None) -> Result:
     """Integrate the compiled diagram over ``simulation.t_final``.
 
     Returns a ``Result``.  A divergence, an exception inside a block, or Ctrl-C raise
@@ -173,7 +178,20 @@ def simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *,
     The log's size is checked before anything is allocated (``fwdstep.core.budgets.check_log``):
     at most ``max_log_bytes`` in memory (default ``budgets.DEFAULT_MAX_LOG_BYTES``, 2 GiB),
     or, with ``log_dir``, half the free space there; else ``ConfigError`` with the numbers.
+    ``sensitivities``: parameters ("alpha", "Ks.gain", "K[0,1]", ...) whose forward
+    sensitivities are integrated along the run, on the NumPy path or (``backend``
+    "compiled") in the compiled stage: ``r.sensitivity(SIGNAL, PARAM)``,
+    ``r.metric_gradient(METRIC)`` (``fwdstep.analysis.sensitivity``, docs/design.md).
     """
+    if sensitivities is not None:
+        if x0 is not None or log_dir is not None or record_states or not fuse:
+            raise ConfigError("sensitivities are integrated from the diagram's own initial "
+                              "state, in memory: they take no x0, log_dir, record_states or "
+                              "fuse=False", file=d.file)
+        import importlib
+        return importlib.import_module(PLUGGED_SENSITIVITIES).sensitivities(
+            d, sensitivities, backend=backend, progress=progress, on_compile=on_compile,
+            max_log_bytes=max_log_bytes)
     used = backend or d.spec.simulation.backend
     try:
         result = _simulate(d, progress, x0, fuse=fuse, backend=backend, log_dir=log_dir,

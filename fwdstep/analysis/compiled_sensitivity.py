@@ -1,0 +1,273 @@
+"""Forward sensitivities on the compiled backend: the variational equations compiled into
+the stage, integrated by the compiled loop as a bigger state.
+
+The compiled backend traces the whole stage into one scalar expression graph
+(``fwdstep.compiled.scalarize``, ``backend_numba._ScalarStage``).  ``VariationalStage`` is
+that stage with, added to the same graph, the derivative of every state derivative and of
+every logged entry along P directions (``fwdstep.analysis.jacobian.directional_tangents``,
+the forward mode the block Jacobians use): the state x_i's tangent in direction c is a new
+state entry S[i, c], a moved parameter entry's tangent is its dp/dtheta (found by the
+loader, ``sensitivity.loader_derivative``), so the tangent of the state derivative f is
+A S + B.  The stage integrates (x, S), N (1 + P) entries; the Runge-Kutta map applied to
+that state *is* the variational equation of the RK map (same tableau, same stage times,
+same sub-steps at declared discontinuities), which the NumPy path integrates block by
+block (``sensitivity._integrate``): both differentiate the numbers fwdstep computes.
+
+Where a parameter reaches the code:
+
+* a kernel's argument ``block.p.NAME`` moved by the parameter: its entries are leaves of
+  their own (not folded into 0, 1, -1 or shared with an equal entry, as the diagram's stage
+  does), seeded with their column of dp (entries of W as well: another value of the
+  parameter with the same pattern of zeros runs the same machine code);
+* a fused linear group's matrix M (``fwdstep.core.linear.plan_fusion``): M is a product of
+  the blocks' matrices, so dM/dtheta is the Richardson central difference of the fusion of
+  the moved blocks (exact to round-off for the polynomials of degree <= 4 a fusion makes);
+  the entries that move are leaves of their own, seeded with dM.
+
+The sensitivities of logged signals are extra columns of the compiled log (``LL``), written
+at the same record as the signals.  Only x is checked against ``simulation.bound``.
+
+Not compiled (``run_compiled`` returns the reason, and ``fwdstep.sensitivities`` takes the
+NumPy path with a one-line note in ``Result.notes``): discrete updates at sample instants,
+zero crossings, stages that do not trace (object-mode blocks, kernels the tracer refuses),
+a parameter that reaches a kernel other than as one of its arguments.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time as _time
+
+import numpy as np
+
+from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS, directional_tangents, \
+    moved_block, richardson
+from fwdstep.compiled import backend_numba
+from fwdstep.compiled import scalarize as sz
+from fwdstep.compiled.driver import CompiledBackend, numpy_instead
+from fwdstep.core.solvers import TABLEAUX
+
+#: the variational stage's graph may hold this many nodes (the diagram's stage: 20 000)
+MAX_NODES = 200_000
+
+
+class VariationalStage(backend_numba._ScalarStage):
+    """The diagram's scalar stage and its tangents along P directions (module docstring).
+    ``dp[(block, name)]``: d block.p.name / d columns, (size, P); ``dM[id(group op)]``:
+    d M / d columns, (P, rows, columns).  State layout: x (N), then S[i, c] at
+    N + i P + c.  ``sens_columns``: the first log column of each logged signal's
+    sensitivities, (size, P) in C order."""
+
+    def __init__(self, d, dp: dict, dM: dict, P: int, shapes, ops, fused, logged, unlogged,
+                 n_stages: int):
+        self.dp, self.dM, self.P, self.N = dp, dM, P, d.n_states
+        self.seeds: dict = {}             # leaf node number -> {direction: node}
+        self._moving: dict = {}           # (id(group op), i, j) -> its leaf
+        self.sens_columns: list = []
+        super().__init__(d, shapes, ops, fused, d.constant_signals, logged, unlogged,
+                         n_stages)
+
+    def _moving_leaf(self, values, tangent):
+        """A parameter entry that moves: a column of W of its own, seeded."""
+        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        if len(self.columns) >= backend_numba.MAX_SCALAR_PARAMS:
+            raise sz.Untraceable(f"more than {backend_numba.MAX_SCALAR_PARAMS} parameter "
+                                 "entries")
+        j = len(self.columns)
+        self.columns.append(values)
+        node = self.tr.leaf(f"p{j}", True, values)
+        # the seeds are parameter entries too (not constants written into the code), so
+        # another value of the parameter runs the same machine code
+        self.seeds[node.n] = {c: self._leaf(np.array([tangent[c]])) for c in range(self.P)
+                              if tangent[c] != 0.0}
+        return node
+
+    def _kernel_param(self, blk, name: str):
+        g = self.dp.get((blk.name, name))
+        if g is None:
+            return super()._kernel_param(blk, name)
+        arr = np.asarray(getattr(blk.p, name), dtype=np.float64)
+        out = np.empty((1,) + arr.shape[1:], dtype=object)
+        for k, idx in enumerate(np.ndindex(*arr.shape[1:])):
+            values = arr[(slice(None),) + idx]
+            out[(0,) + idx] = (self._moving_leaf(values, g[k]) if g[k].any()
+                               else self._leaf(values))
+        return out
+
+    def _group_mask(self, op, M):
+        mask = super()._group_mask(op, M)
+        dm = self.dM.get(id(op))
+        return mask if dm is None else mask | np.any(dm != 0.0, axis=0)
+
+    def _group_entry(self, op, M, i: int, j: int):
+        dm = self.dM.get(id(op))
+        if dm is None or not dm[:, i, j].any():
+            return super()._group_entry(op, M, i, j)
+        key = (id(op), i, j)
+        if key not in self._moving:
+            self._moving[key] = self._moving_leaf(M[:, i, j], dm[:, i, j])
+        return self._moving[key]
+
+    def _extend(self, x, sig, logs, shapes, roots) -> None:
+        tr, N, P = self.tr, self.N, self.P
+        tr.max_nodes = max(tr.max_nodes, MAX_NODES)
+        for i in range(N):
+            self.seeds[x[0, i].n] = {c: tr.leaf(f"x{N + i * P + c}", False)
+                                     for c in range(P)}
+        logged = [sig[idx].reshape(-1) for idx in logs]
+        primal = list(self.der)
+        tangents = directional_tangents(
+            tr, [node for _, node in primal] + [n for nodes in logged for n in nodes],
+            self.seeds)
+        zero = tr.const(0.0)
+        self.der = primal + [(N + i * P + c, t.get(c, zero))
+                             for (i, _), t in zip(primal, tangents) for c in range(P)]
+        col, k = self.log_width, len(primal)
+        for nodes in logged:
+            self.sens_columns.append(col)
+            for _ in nodes:
+                t = tangents[k]
+                k += 1
+                for c in range(P):
+                    node = t.get(c, zero)
+                    self.records.append((col, node))
+                    roots.append(node)
+                    col += 1
+        self.log_width = col
+
+    def _total_states(self, d) -> int:
+        return d.n_states * (1 + self.P)
+
+
+def group_derivatives(d, ops, shapes, dp: dict, P: int) -> dict:
+    """d M / d column for every fused group whose blocks move: id(op) -> (P, rows, cols),
+    Richardson central differences of the fusion of the moved blocks (module docstring)."""
+    groups = [(k, op) for k, (kind, op, _) in enumerate(ops) if kind == "group"]
+    by_block: dict = {}
+    for (blk, name), g in dp.items():
+        by_block.setdefault(blk, {})[name] = g
+    if not groups or not by_block:
+        return {}
+    out = {id(op): np.zeros((P,) + np.shape(op.M)[1:]) for _, op in groups}
+    for c in range(P):
+        scale = max(float(np.max(np.abs(g[:, c]))) for m in by_block.values()
+                    for g in m.values())
+        if scale == 0.0:
+            continue
+        size = max([float(np.max(np.abs(getattr(st.block.p, n)))) for st in d.schedule
+                    if st.block.name in by_block for n in by_block[st.block.name]] + [1.0])
+        h = DIFFERENCE_STEP * size / scale
+        values = []
+        for off in OFFSETS:
+            schedule = [dataclasses.replace(st, block=moved_block(
+                st.block, by_block[st.block.name], c, off * h))
+                if st.block.name in by_block else st for st in d.schedule]
+            moved, _ = backend_numba._ops_for(schedule, shapes, d.constant_signals)
+            if [kind for kind, _, _ in moved] != [kind for kind, _, _ in ops] or any(
+                    np.shape(moved[k][1].M) != np.shape(op.M) for k, op in groups):
+                raise sz.Untraceable("the fusion of the linear blocks changes with the "
+                                     "parameter")
+            values.append([np.asarray(moved[k][1].M, dtype=float) for k, _ in groups])
+        for g, (_, op) in enumerate(groups):
+            out[id(op)][c] = richardson([v[g] for v in values], h)[0]
+    return {key: dm for key, dm in out.items() if dm.any()}
+
+
+def _check_calls(ops, dp: dict) -> None:
+    """A moved p array a kernel does not take as an argument must not change what it
+    computes (its static values): else the stage cannot be differentiated here."""
+    for kind, op, _ in ops:
+        if kind != "call" or op.block.kernels is None:
+            continue
+        blk = op.block
+        others = {name: g for (b, name), g in dp.items()
+                  if b == blk.name and name not in blk.kernels.params}
+        if not others:
+            continue
+        for c in range(next(iter(others.values())).shape[1]):
+            probe = moved_block(blk, others, c, 1e-3)
+            same = len(probe.kernels.static) == len(blk.kernels.static) and all(
+                np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+                zip(probe.kernels.static, blk.kernels.static))
+            if not same:
+                raise sz.Untraceable(f"parameter '{next(iter(others))}' of block "
+                                     f"'{blk.name}' reaches its kernels other than as an "
+                                     "argument")
+
+
+def variational_stage(d, dp: dict, P: int) -> VariationalStage:
+    """The compiled-backend stage of ``d`` with its tangents; ``Untraceable`` when not."""
+    shapes = [tuple(s) for s in d.signal_shapes]
+    ops, fused = backend_numba._ops_for(d.schedule, shapes, d.constant_signals)
+    _check_calls(ops, dp)
+    dM = group_derivatives(d, ops, shapes, dp, P)
+    from fwdstep.run.finite import unlogged_signals
+    logged = [d.signal_index[name] for name in d.logged]
+    return VariationalStage(d, dp, dM, P, shapes, ops, fused, logged, unlogged_signals(d),
+                            TABLEAUX[d.spec.simulation.solver].stages)
+
+
+class SensitivityBackend(CompiledBackend):
+    """The compiled backend integrating (x, S) (``VariationalStage``); ``x`` is the view of
+    the diagram's state, S starts at ``S0`` (N, P)."""
+
+    def __init__(self, d, plan, stage: VariationalStage, S0, on_compile=None):
+        super().__init__(d, plan, on_compile, stage=stage)
+        self.stage, self.S0 = stage, np.asarray(S0, dtype=float)
+
+    def start(self, x0) -> None:
+        super().start(x0)
+        self.prog.xn[:, self.d.n_states:] = self.S0.reshape(1, -1)
+
+    def sensitivities(self, rows: int) -> dict:
+        """Logged signal -> its sensitivities (rows, size, P) from the compiled log."""
+        st, P = self.stage, self.stage.P
+        LL = self.prog.call_logs[0].reshape(-1, self.d.batch, max(st.log_width, 1))
+        out = {}
+        for name, col in zip(self.d.logged, st.sens_columns):
+            size = int(np.prod(self.d.signal_shapes[self.d.signal_index[name]],
+                               dtype=np.int64))
+            out[name] = LL[:rows, 0, col:col + size * P].reshape(rows, size, P).copy()
+        return out
+
+
+def not_compiled(d) -> str | None:
+    """Why the compiled backend cannot integrate ``d``'s sensitivities (before tracing)."""
+    from fwdstep.run.crossings import crossing_steps
+    from fwdstep.run.events import plan_events
+    located = crossing_steps(d)
+    if located:
+        blk = located[0].block
+        return f"block '{blk.name}' ({blk.type_name}) has zero crossings"
+    cfg = d.spec.simulation
+    plan = plan_events(d, cfg.step, cfg.n_steps)
+    if plan is not None and (plan.discrete or (plan.final is not None and plan.final.updates)):
+        return "discrete blocks update at sample instants"
+    return numpy_instead(d)
+
+
+def run_compiled(d, dp: dict, P: int, S0, progress=None, on_compile=None,
+                 max_log_bytes=None):
+    """Run ``d`` and its sensitivities on the compiled backend: (Result, signal ->
+    (rows, size, P)), or the reason (one line) why they are not compiled."""
+    from fwdstep.core.budgets import check_log
+    from fwdstep.run.events import plan_events
+    from fwdstep.run.simulate import run
+    check_log(d, max_log_bytes, api=True)
+    wall0 = _time.perf_counter()
+    reason = not_compiled(d)
+    if reason is not None:
+        return reason
+    cfg = d.spec.simulation
+    try:
+        stage = variational_stage(d, dp, P)
+        backend = SensitivityBackend(d, plan_events(d, cfg.step, cfg.n_steps), stage, S0,
+                                     on_compile)
+    except sz.Untraceable as exc:
+        return f"its variational stage is not compiled ({exc})"
+    r = run(d, backend, progress, None, wall0)
+    r.backend = "compiled"
+    return r, backend.sensitivities(len(r.t))
+
+
+__all__ = ["VariationalStage", "SensitivityBackend", "variational_stage", "run_compiled",
+           "group_derivatives", "not_compiled"]
