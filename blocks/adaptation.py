@@ -162,8 +162,8 @@ class AdaptationLaw(Block):
         p = self._p
         th, m = x[:, :p], x[:, p:]
         upd = self._update(t, x, u)
-        g_lo = np.where(m < 0, upd, th - self.p.lower)
-        g_hi = np.where(m > 0, -upd, self.p.upper - th)
+        g_lo = np.where(m < -0.5, upd, th - self.p.lower)
+        g_hi = np.where(m > 0.5, -upd, self.p.upper - th)
         return np.concatenate((g_lo, g_hi), axis=1)
 
     def crossed(self, t, x, u, which):
@@ -172,8 +172,9 @@ class AdaptationLaw(Block):
         lo = np.broadcast_to(self.p.lower, th.shape)
         hi = np.broadcast_to(self.p.upper, th.shape)
         w_lo, w_hi = which[:, :p], which[:, p:]
-        hit_lo, hit_hi = w_lo & (m == 0), w_hi & (m == 0)
-        left = (w_lo & (m < 0)) | (w_hi & (m > 0))
+        free = np.abs(m) < 0.5
+        hit_lo, hit_hi = w_lo & free, w_hi & free
+        left = (w_lo & (m < -0.5)) | (w_hi & (m > 0.5))
         th = np.where(hit_lo, lo, np.where(hit_hi, hi, th))
         m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
         return np.concatenate((th, m), axis=1)
@@ -233,5 +234,5 @@ def adaptation_box_derivative(t, x, W, e, gain, lower, upper, p, kind):
     is held at a bound; the modes change only at crossings."""
     upd = _base_update(t, x[:, :p], W, e, gain, kind)
     dx = np.zeros(x.shape)
-    dx[:, :p] = np.where(x[:, p:] == 0.0, upd, 0.0)
+    dx[:, :p] = np.where(np.abs(x[:, p:]) < 0.5, upd, 0.0)
     return dx

@@ -655,7 +655,7 @@ def limited_integrator_derivative(t, x, u, reset, value, lower, upper, n, scalar
     """x' = u while free (mode 0), 0 while held at a limit (mode -1 lower, +1 upper)."""
     uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
     dx = np.zeros(x.shape)
-    dx[:, :n] = np.where(x[:, n:] == 0.0, uf, 0.0)
+    dx[:, :n] = np.where(np.abs(x[:, n:]) < 0.5, uf, 0.0)
     return dx
 
 
@@ -665,8 +665,8 @@ def limited_integrator_guards(x, u, reset, lower, upper, n):
     xi, m = x[:, :n], x[:, n:]
     uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
     rf = np.ascontiguousarray(reset).reshape((reset.shape[0], n))
-    g_lo = np.where(m < 0, uf, xi - lower)
-    g_hi = np.where(m > 0, -uf, upper - xi)
+    g_lo = np.where(m < -0.5, uf, xi - lower)
+    g_hi = np.where(m > 0.5, -uf, upper - xi)
     B = max(g_lo.shape[0], g_hi.shape[0], rf.shape[0])
     return np.concatenate((np.broadcast_to(g_lo, (B, n)), np.broadcast_to(g_hi, (B, n)),
                            np.broadcast_to(rf, (B, n))), axis=1)
@@ -744,9 +744,9 @@ class LimitedIntegrator(Block):
         lo, hi = self.p.lower, self.p.upper
         lo_b, hi_b = np.broadcast_to(lo, xi.shape), np.broadcast_to(hi, xi.shape)
         w_lo, w_hi, w_reset = which[:, :n], which[:, n:2 * n], which[:, 2 * n:]
-        hit_lo = w_lo & (m == 0)                 # reached the lower limit: held there
-        hit_hi = w_hi & (m == 0)
-        left = (w_lo & (m < 0)) | (w_hi & (m > 0))       # u points back inside: free
+        hit_lo = w_lo & (np.abs(m) < 0.5)        # reached the lower limit: held there
+        hit_hi = w_hi & (np.abs(m) < 0.5)
+        left = (w_lo & (m < -0.5)) | (w_hi & (m > 0.5))       # u points back inside: free
         xi = np.where(hit_lo, lo_b, np.where(hit_hi, hi_b, xi))
         m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
         r = np.ascontiguousarray(u[1]).reshape((u[1].shape[0], n))
