@@ -26,26 +26,15 @@ signs; the end pass is the next step's stage 1 (and record), so nothing is evalu
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
+from fwdstep.results.result import CrossingEvent
 from fwdstep.run.events import apply_updates
 
 #: the located crossing time is within this of the exact root of the computed trajectory
 CROSSING_TOL = 1e-13
 #: more crossings of one block within one grid step than this: chattering
 CHATTER = 8
-
-
-@dataclass(frozen=True)
-class CrossingEvent:
-    """One located crossing: ``time`` (s), ``block`` (name), ``kind`` (guard name and
-    direction, e.g. 'upper rising', or 'chattering'), ``variant`` (of a batch)."""
-    time: float
-    block: str
-    kind: str
-    variant: int = 0
 
 
 def crossing_steps(d) -> tuple:
