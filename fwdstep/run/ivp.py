@@ -12,7 +12,16 @@ tolerance (``dop853``).  What stays the same as the fixed-step path:
   limit) and every evaluation of the next at a time >= T (right limit), and the discrete
   blocks are updated there exactly as in the fixed-step path (a record at an event time
   shows the updated values);
-* ``step`` only sets the output grid here; the solver chooses its own steps.
+* ``step`` only sets the output grid here; the solver chooses its own steps (at most
+  ``step`` long when the diagram has zero crossings);
+* zero crossings (``Block.zero_crossings``; ``fwdstep.run.crossings``) are located: each
+  guard of each variant is a terminal ``solve_ivp`` event (0 counts as positive; watched
+  away from its sign at the start).  At an event the crossing is found again on the
+  solver's own map tau -> the state after solving from the start of the last step (t_old)
+  to t_old + tau, so no stage lies past it; just past it the blocks' ``crossed`` apply,
+  the event is listed, a Stop ends the run, chattering is reported once -- all through
+  ``fwdstep.run.crossings.act``, as on the fixed step -- and solve_ivp starts again there.
+  A guard whose sign differs across a declared discontinuity acts there.
 
 The whole batch is one ODE system; if any variant exceeds ``bound`` the run stops
 (diverged) with everything recorded so far.
@@ -172,9 +181,13 @@ class IvpBackend(Backend):
             events = self._events(G0, lo, hi)
             self.G0 = G0
         y0 = x.reshape(-1).copy() if N else np.zeros(1)
+        # with guards, no step longer than the grid step: solve_ivp looks for sign changes
+        # at its step ends only, and a guard that moves with time alone (a sine's level)
+        # would otherwise cross twice within one long step of a state at rest, unseen
+        more = {"max_step": d.spec.simulation.step} if events else {}
         sol = solve_ivp(self._rhs(lo, hi), (ta, end), y0, method=self.method,
                         dense_output=True, rtol=self.rtol, atol=self.atol,
-                        events=events or None)
+                        events=events or None, **more)
         self.steps += max(len(sol.t) - 1, 0)
         self.n = max(self.steps - 1, 0)
         if sol.status < 0:

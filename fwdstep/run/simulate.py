@@ -40,7 +40,7 @@ run ends (divergence, outputs not finite, errors, Ctrl-C) and the Result.  The b
 * ``compiled`` (``fwdstep.compiled.driver``, loaded by name: the run layer never imports it):
   the same procedure in numba, advanced a chunk of steps at a time;
 * solve_ivp (``fwdstep.run.ivp``): scipy's adaptive solvers, advanced one segment between
-  declared discontinuities at a time.
+  declared discontinuities at a time (restarted at each located zero crossing).
 
 The procedure itself is stated once as data (``fwdstep.core.solvers.step_plan``: the nonzero
 coefficients in the order they are summed) and run by ``fwdstep.core.solvers.rk_step`` (the
