@@ -12,8 +12,9 @@ tolerance (``dop853``).  What stays the same as the fixed-step path:
   limit) and every evaluation of the next at a time >= T (right limit), and the discrete
   blocks are updated there exactly as in the fixed-step path (a record at an event time
   shows the updated values);
-* ``step`` only sets the output grid here; the solver chooses its own steps (at most
-  ``step`` long when the diagram has zero crossings);
+* ``step`` only sets the output grid here; the solver chooses its own steps (the guards
+  are checked at the grid times too: where one changed sign unseen by the solver's step
+  ends, the piece is solved again with steps of at most ``step``);
 * zero crossings (``Block.zero_crossings``; ``fwdstep.run.crossings``) are located: each
   guard of each variant is a terminal ``solve_ivp`` event (0 counts as positive; watched
   away from its sign at the start).  At an event the crossing is found again on the
@@ -181,13 +182,18 @@ class IvpBackend(Backend):
             events = self._events(G0, lo, hi)
             self.G0 = G0
         y0 = x.reshape(-1).copy() if N else np.zeros(1)
-        # with guards, no step longer than the grid step: solve_ivp looks for sign changes
-        # at its step ends only, and a guard that moves with time alone (a sine's level)
-        # would otherwise cross twice within one long step of a state at rest, unseen
-        more = {"max_step": d.spec.simulation.step} if events else {}
         sol = solve_ivp(self._rhs(lo, hi), (ta, end), y0, method=self.method,
                         dense_output=True, rtol=self.rtol, atol=self.atol,
-                        events=events or None, **more)
+                        events=events or None)
+        if events and self._unseen(sol, ta, G0, lo, hi):
+            # solve_ivp looks for sign changes at its step ends only: a guard that moves
+            # with time alone (a sine's level) crossed twice within one long step of a
+            # state at rest.  Solved again with steps no longer than the grid's, the
+            # fixed-step path's own guarantee
+            self.steps += max(len(sol.t) - 1, 0)
+            sol = solve_ivp(self._rhs(lo, hi), (ta, end), y0, method=self.method,
+                            dense_output=True, rtol=self.rtol, atol=self.atol,
+                            events=events, max_step=d.spec.simulation.step)
         self.steps += max(len(sol.t) - 1, 0)
         self.n = max(self.steps - 1, 0)
         if sol.status < 0:
@@ -200,6 +206,26 @@ class IvpBackend(Backend):
             return sol, end if end < b else b, False
         t_cut = self._past(sol, lo, hi)
         return sol, t_cut, True
+
+    def _unseen(self, sol, ta, G0, lo, hi) -> bool:
+        """Whether an active guard has left its sign at ta at a grid time (n * step)
+        inside the solution (before its event, if it ended at one): a crossing the
+        solver's step ends did not show."""
+        zc, x = self.crossings, self.x
+        B, N = x.shape
+        h = self.d.spec.simulation.step
+        t_end = float(sol.t[-1])
+        times = np.arange(math.floor(ta / h) + 1, math.ceil(t_end / h)) * h
+        times = times[(times > ta) & (times < t_end)]
+        if not len(times):
+            return False
+        states = sol.sol(times)
+        s0 = G0 >= 0
+        for k, tt in enumerate(times):
+            self._eval(tt, states[:, k].reshape(B, N) if N else x, lo, hi)
+            if (((self.prog.G >= 0) != s0) & zc.active).any():
+                return True
+        return False
 
     def _rhs(self, lo, hi):
         """f(t, y): the program's stage 1 at t clamped to [lo, hi] (the side of the
