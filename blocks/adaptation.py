@@ -27,12 +27,28 @@ class AdaptationLaw(Block):
         | e         | in        | (n,)           | -           |
         | theta_hat | out       | (p,) or ()     | -           |
 
-    Projection (the standard robust-adaptive modification): with ``lower`` and/or
-    ``upper``, theta_hat stays in the box lower <= theta_hat <= upper: an entry that
-    reaches a bound stops there (its update is zeroed) until the update points back inside.
-    Reaching and leaving a bound are zero crossings located in time
-    (docs/writing-blocks.md); the state is then theta_hat followed by one mode per entry
-    (0 inside, -1 at lower, +1 at upper).
+    Projection (the standard robust-adaptive modification), onto a box or a ball:
+
+    * box, with ``lower`` and/or ``upper``: theta_hat stays in lower <= theta_hat <= upper:
+      an entry that reaches a bound stops there (its update is zeroed) until the update
+      points back inside; the state is theta_hat followed by one mode per entry (0 inside,
+      -1 at lower, +1 at upper);
+    * ball, with ``radius`` (and ``center``, default 0): theta_hat stays in
+      ||theta_hat - c|| <= r (Ioannou & Sun, Robust Adaptive Control, sec. 4.4.2, the
+      projection of the gradient law onto g(theta) = ||theta - c||^2 - r^2 <= 0): with
+      tau = -Gamma W^T e the unprojected update and d = theta_hat - c (the outward normal),
+
+          theta_hat' = tau                                  inside, or on the sphere with
+                                                            d^T tau <= 0 (pointing inward)
+          theta_hat' = tau - Gamma d (d^T tau) / (d^T Gamma d)   on the sphere, d^T tau > 0
+
+      (for Gamma = gamma I: tau less its outward normal component; d^T theta_hat' = 0, so
+      theta_hat slides along the sphere).  The state is theta (p) and one mode (0 inside,
+      1 on the sphere); while on the sphere theta_hat = c + r d / ||d|| (the state put
+      back on the sphere, so the estimate never leaves the ball by integration drift).
+
+    Reaching and leaving the boundary are zero crossings located in time
+    (docs/writing-blocks.md).
 
     Parameters:
         regressor_shape: [n, p] for a matrix regressor (estimate of p parameters), or [n]
@@ -42,6 +58,8 @@ class AdaptationLaw(Block):
         theta0: initial estimate theta_hat(0): one number for every entry, or p numbers.
         lower: projection box, lower bound (a number or p numbers; default none).
         upper: projection box, upper bound (a number or p numbers; default none).
+        radius: projection ball, its radius r > 0 (default none; not with a box).
+        center: projection ball, its center c (a number or p numbers; default 0).
     """
 
     params = {
@@ -50,13 +68,16 @@ class AdaptationLaw(Block):
         "theta0": Param("array", 0.0, "initial estimate: scalar or (p,)"),
         "lower": Param("array", None, "projection: lower bound of theta_hat (default none)"),
         "upper": Param("array", None, "projection: upper bound of theta_hat (default none)"),
+        "radius": Param("float", None, "projection: ball radius r (default none)"),
+        "center": Param("array", 0.0, "projection: ball center c (default 0)"),
     }
     shape_from = {"regressor_shape": ("W",)}
     example = {"regressor_shape": [2, 4], "gamma": [[2.0, 0.5, 0, 0], [0.5, 1.0, 0, 0],
                                                     [0, 0, 1.0, 0], [0, 0, 0, 3.0]],
                "theta0": [1.0, 0.5, 0.2, 0.1]}
 
-    def setup(self, regressor_shape, gamma, theta0, lower=None, upper=None):
+    def setup(self, regressor_shape, gamma, theta0, lower=None, upper=None, radius=None,
+              center=0.0):
         shape = np.atleast_1d(np.asarray(regressor_shape))
         if shape.ndim != 1 or shape.size not in (1, 2) or np.any(shape < 1) \
                 or np.any(shape != np.floor(shape)):
@@ -112,8 +133,33 @@ class AdaptationLaw(Block):
                             label=r"$\hat\theta$")
         self._p = p
         self._box = lower is not None or upper is not None
+        self._ball = radius is not None
         labels = ["theta_hat"] if self._vector else [f"theta_hat[{k}]" for k in range(p)]
-        if self._box:
+        if self._box and self._ball:
+            raise ParameterError(f"block {self.name!r}: one projection, a box ('lower', "
+                                 "'upper') or a ball ('radius', 'center'), not both",
+                                 block=self.name)
+        if self._ball:
+            c = np.asarray(center, dtype=float)
+            if c.size not in (1, p):
+                raise ParameterError(f"block {self.name!r} parameter 'center' must be a "
+                                     f"number or {p} numbers, got shape {c.shape}",
+                                     block=self.name)
+            c = np.broadcast_to(c.reshape(-1), (p,))
+            if not radius > 0:
+                raise ParameterError(f"block {self.name!r} parameter 'radius' must be "
+                                     f"positive, got {radius}", block=self.name)
+            dist = float(np.linalg.norm(t0 - c))
+            if dist > radius:
+                raise ParameterError(f"block {self.name!r} needs theta0 in the ball: "
+                                     f"||theta0 - center|| = {dist:.6g} > radius {radius:g}",
+                                     block=self.name)
+            self.set_param("center", c)
+            self.set_param("radius", [radius])
+            self.declare_state(p + 1, np.concatenate((t0, [0.0])))
+            self.state_labels = labels + ["mode"]
+            self.declare_zero_crossings(("ball",), 1)
+        elif self._box:
             lo = np.broadcast_to(np.asarray(-np.inf if lower is None else lower, dtype=float),
                                  (p,))
             hi = np.broadcast_to(np.asarray(np.inf if upper is None else upper, dtype=float),
@@ -133,9 +179,13 @@ class AdaptationLaw(Block):
         self.finalize(1)
 
     def finalize(self, batch: int) -> None:
-        if self._box:
-            kind = 0 if self._vector else (2 if self._matrix_gain else 1)
-            gain = "gamma_T" if self._matrix_gain else "gamma"
+        kind = self._kind()
+        gain = "gamma_T" if self._matrix_gain else "gamma"
+        if self._ball:
+            self.set_kernels(output=adaptation_ball_output,
+                             derivative=adaptation_ball_derivative,
+                             params=(gain, "center", "radius"), static=(self._p, kind))
+        elif self._box:
             self.set_kernels(output=adaptation_box_output, derivative=adaptation_box_derivative,
                              params=(gain, "lower", "upper"),
                              static=(self._p, kind))
@@ -153,27 +203,61 @@ class AdaptationLaw(Block):
     def _update(self, t, x, u):
         """The unprojected theta_hat' (B, p)."""
         gain = self.p.gamma_T if self._matrix_gain else self.p.gamma
-        kind = 0 if self._vector else (2 if self._matrix_gain else 1)
-        return _base_update(t, x[:, :self._p], u[0], u[1], gain, kind)
+        return _base_update(t, x[:, :self._p], u[0], u[1], gain, self._kind())
 
     def zero_crossings(self, t, x, u):
+        if self._ball:
+            return self._ball_guards(t, x, u)
+        return self._box_guards(t, x, u)
+
+    def crossed(self, t, x, u, which):
+        if self._ball:
+            return self._ball_crossed(t, x, u, which)
+        return self._box_crossed(t, x, u, which)
+
+    def _ball_guards(self, t, x, u):
+        """ball: r - ||theta - c|| while inside (reaches the sphere where it falls through
+        0); -d^T tau while on the sphere (leaves it where the update turns inward)."""
+        p, kind = self._p, self._kind()
+        gain = self.p.gamma_T if self._matrix_gain else self.p.gamma
+        th = ball_point(x, self.p.center, self.p.radius, p)
+        d = th - self.p.center
+        tau = _base_update(t, th, u[0], u[1], gain, kind)
+        inside = self.p.radius - np.sqrt(np.sum(d * d, axis=1, keepdims=True))
+        return np.where(x[:, p:p + 1] > 0.5, -np.sum(d * tau, axis=1, keepdims=True), inside)
+
+    def _ball_crossed(self, t, x, u, which):
+        """Reached the sphere: held on it; the update turned inward: free.  Either way the
+        estimate starts from the sphere exactly."""
+        p = self._p
+        th = ball_point(np.concatenate((x[:, :p], np.ones_like(x[:, p:])), axis=1),
+                        self.p.center, self.p.radius, p)
+        mode = np.where(x[:, p:] > 0.5, 0.0, 1.0)
+        new = np.concatenate((th, mode), axis=1)
+        return np.where(which, new, x)
+
+    def _kind(self) -> int:
+        return 0 if self._vector else (2 if self._matrix_gain else 1)
+
+    def _box_guards(self, t, x, u):
         """lower: theta - lower while inside, the update while held there (leaves when it
         turns positive); upper: upper - theta while inside, -update while held there."""
         p = self._p
         th, m = x[:, :p], x[:, p:]
         upd = self._update(t, x, u)
-        g_lo = np.where(m < 0, upd, th - self.p.lower)
-        g_hi = np.where(m > 0, -upd, self.p.upper - th)
+        g_lo = np.where(m < -0.5, upd, th - self.p.lower)
+        g_hi = np.where(m > 0.5, -upd, self.p.upper - th)
         return np.concatenate((g_lo, g_hi), axis=1)
 
-    def crossed(self, t, x, u, which):
+    def _box_crossed(self, t, x, u, which):
         p = self._p
         th, m = x[:, :p].copy(), x[:, p:].copy()
         lo = np.broadcast_to(self.p.lower, th.shape)
         hi = np.broadcast_to(self.p.upper, th.shape)
         w_lo, w_hi = which[:, :p], which[:, p:]
-        hit_lo, hit_hi = w_lo & (m == 0), w_hi & (m == 0)
-        left = (w_lo & (m < 0)) | (w_hi & (m > 0))
+        free = np.abs(m) < 0.5
+        hit_lo, hit_hi = w_lo & free, w_hi & free
+        left = (w_lo & (m < -0.5)) | (w_hi & (m > 0.5))
         th = np.where(hit_lo, lo, np.where(hit_hi, hi, th))
         m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
         return np.concatenate((th, m), axis=1)
@@ -233,5 +317,46 @@ def adaptation_box_derivative(t, x, W, e, gain, lower, upper, p, kind):
     is held at a bound; the modes change only at crossings."""
     upd = _base_update(t, x[:, :p], W, e, gain, kind)
     dx = np.zeros(x.shape)
-    dx[:, :p] = np.where(x[:, p:] == 0.0, upd, 0.0)
+    dx[:, :p] = np.where(np.abs(x[:, p:]) < 0.5, upd, 0.0)
+    return dx
+
+
+# ---------------------------------------------------------------- the ball projection
+def _times_gain(v, gain, kind):
+    """Gamma v (B, p): scalar or diagonal gain times v, or the (p, p) gain (gamma_T)."""
+    if kind == 2:
+        return ko.bvecmat(v, gain)
+    return gain * v
+
+
+def ball_point(x, center, radius, p):
+    """theta_hat (B, p): the state's estimate, put on the sphere c + r d / ||d|| while it is
+    held there (mode x[:, p] = 1)."""
+    th = x[:, :p]
+    d = th - center
+    norm = np.sqrt(np.sum(d * d, axis=1)).reshape((-1, 1))
+    on = center + radius * d / np.maximum(norm, 1e-300)
+    return np.where(x[:, p:p + 1] > 0.5, on, th)
+
+
+def adaptation_ball_output(t, x, W, e, gain, center, radius, p, kind):
+    """theta_hat = the estimate, on the sphere while held there."""
+    th = ball_point(x, center, radius, p)
+    if kind == 0:
+        return (th[:, 0].copy(),)
+    return (th,)
+
+
+def adaptation_ball_derivative(t, x, W, e, gain, center, radius, p, kind):
+    """theta_hat' = tau inside; on the sphere tau - Gamma d (d^T tau) / (d^T Gamma d), the
+    update with its outward component removed (Ioannou & Sun's projection); mode' = 0."""
+    th = ball_point(x, center, radius, p)
+    tau = _base_update(t, th, W, e, gain, kind)
+    d = th - center
+    gd = _times_gain(d + np.zeros_like(tau), gain, kind)
+    num = np.sum(d * tau, axis=1).reshape((-1, 1))
+    den = np.sum(d * gd, axis=1).reshape((-1, 1))
+    projected = tau - gd * (num / np.maximum(den, 1e-300))
+    dx = np.zeros((max(x.shape[0], tau.shape[0]), x.shape[1]))
+    dx[:, :p] = np.where(x[:, p:p + 1] > 0.5, projected, tau)
     return dx

@@ -40,6 +40,14 @@ def clip_output(t, x, u, lower, upper):
     return (np.minimum(np.maximum(u, lower), upper),)
 
 
+def clip_guards(u, lower, upper):
+    """u - lower, then u - upper, per element (Clip, its limits as signals)."""
+    uf, lo, hi = _flat(u), _flat(lower), _flat(upper)
+    B = max(uf.shape[0], lo.shape[0], hi.shape[0])
+    return np.concatenate((np.broadcast_to(uf - lo, (B, uf.shape[1])),
+                           np.broadcast_to(uf - hi, (B, uf.shape[1]))), axis=1)
+
+
 def dead_zone_output(t, x, u, lower, upper):
     """y = u - min(max(u, lower), upper): u - upper above, 0 inside, u - lower below."""
     return (u - np.minimum(np.maximum(u, lower), upper),)
@@ -61,28 +69,56 @@ def rate_limiter_output_scalar(t, x, u, time_constant, rising, falling):
     return (x[:, 0].copy(),)
 
 
-def friction_output(t, x, qdot, coulomb, viscous, velocity_scale):
-    """tau_f = -(F_c sgn(qdot) + F_v qdot), sgn = sign (velocity_scale 0) or tanh(qdot / v_s)."""
+def friction_law(t, x, qdot, coulomb, viscous, velocity_scale):
+    """tau_f = -(F_c sgn(qdot) + F_v qdot), sgn = sign (velocity_scale 0) or tanh(qdot / v_s)
+    (the law applied inside a plant, e.g. URDFArm, where no crossing is located)."""
     smooth = np.tanh(qdot / np.maximum(velocity_scale, 1e-300))
     sgn = np.where(velocity_scale > 0.0, smooth, np.sign(qdot))
     return (-(coulomb * sgn + viscous * qdot),)
 
 
+def friction_output(t, x, qdot, coulomb, viscous, velocity_scale):
+    """The Friction block: tau_f = -(F_c sgn(qdot) + F_v qdot), sgn = tanh(qdot / v_s) (velocity_scale > 0) or
+    the sign held in the state x (+1 / -1, set where qdot crosses 0; 0: sign(qdot))."""
+    smooth = np.tanh(qdot / np.maximum(velocity_scale, 1e-300))
+    held = np.where(x > 0.5, 1.0, np.where(x < -0.5, -1.0, np.sign(qdot)))
+    sgn = np.where(velocity_scale > 0.0, smooth, held)
+    return (-(coulomb * sgn + viscous * qdot),)
+
+
+def held_choice(m, control, threshold):
+    """True where the Switch passes u1: its held choice m (+1 u1, -1 u2, set where control
+    crosses threshold), or control >= threshold where none is held (m = 0)."""
+    return (m > 0.5) | ((np.abs(m) < 0.5) & (control >= threshold))
+
+
 def switch_output_same(t, x, u1, control, u2, threshold):
-    """y = u1 where control >= threshold, else u2 (control per element)."""
-    return (np.where(control >= threshold, u1, u2),)
+    """y = u1 where the held choice says so, else u2 (control per element, or scalar data)."""
+    m = np.ascontiguousarray(x).reshape((x.shape[0],) + control.shape[1:])
+    return (np.where(held_choice(m, control, threshold), u1, u2),)
 
 
 def switch_output_scalar1(t, x, u1, control, u2, threshold):
     """Scalar control, vector data."""
     c = control[:, None]            # control may be a strided view (no reshape in numba)
-    return (np.where(c >= threshold, u1, u2),)
+    return (np.where(held_choice(x[:, 0:1], c, threshold), u1, u2),)
 
 
 def switch_output_scalar2(t, x, u1, control, u2, threshold):
     """Scalar control, matrix data."""
     c = control[:, None, None]
-    return (np.where(c >= threshold, u1, u2),)
+    m = x[:, 0:1]
+    return (np.where(held_choice(m[:, :, None], c, threshold), u1, u2),)
+
+
+def friction_derivative(t, x, qdot, coulomb, viscous, velocity_scale):
+    """The held sign changes only at its crossings: x' = 0."""
+    return np.zeros(x.shape)
+
+
+def switch_derivative(t, x, u1, control, u2, threshold):
+    """The held choice changes only at its crossings: x' = 0."""
+    return np.zeros(x.shape)
 
 
 def lookup_output(t, x, u, breakpoints, values, linear_extrapolation):
@@ -255,7 +291,8 @@ class Clip(Block):
     """Clip: each element of u clipped to [-limit, limit] or [lower, upper], limits as signals.
 
     A ``Saturation`` whose limits are inputs, e.g. a torque clipped to a robot's
-    ``URDFArm.effort_limit``.
+    ``URDFArm.effort_limit``.  Like Saturation, it declares the guards u - lower and
+    u - upper (zero crossings: a run locates where a limit is reached or left).
 
     Equation: y_i = min(max(u_i, -limit_i), limit_i); with ``symmetric: false``,
     y_i = min(max(u_i, lower_i), upper_i) (an element with lower_i > upper_i gives upper_i).
@@ -286,6 +323,15 @@ class Clip(Block):
             self.declare_input(name, shape)
         self.declare_output("y", shape)
         self.set_kernels(output=clip_symmetric_output if symmetric else clip_output)
+        self._symmetric = symmetric
+        self.declare_zero_crossings(("lower", "upper"), int(np.prod(shape, dtype=np.int64)))
+
+    def zero_crossings(self, t, x, u):
+        """u - lower and u - upper (lower = -limit when symmetric): the clip changes
+        regime where either changes sign."""
+        if self._symmetric:
+            return clip_guards(u[0], -u[1], u[1])
+        return clip_guards(u[0], u[1], u[2])
 
 
 @register
@@ -397,7 +443,9 @@ class Friction(Block):
     sgn(v) = tanh(v / v_s) for velocity_scale v_s > 0 (smooth, so fixed-step solvers keep
     their order).  Wire ``qdot`` from the plant and ``tau_f`` into the plant's ``tau_star``
     (through a Sum if there is also a disturbance): the friction then acts on the arm and is
-    unknown to the controller.
+    unknown to the controller.  With velocity_scale = 0 the sign is a state of the block
+    (sign(qdot(0)) at t = 0), changed only where qdot_i crosses 0 (a located zero
+    crossing), so every Runge-Kutta stage of a step sees one sign.
 
     Ports:
         | port  | direction | shape | feedthrough |
@@ -418,6 +466,7 @@ class Friction(Block):
         "velocity_scale": Param("float", 0.0, "tanh smoothing velocity v_s (0: sign)"),
     }
     example = {"n": 2, "coulomb": [0.5, 0.3], "viscous": 0.2, "velocity_scale": 0.01}
+    init_from_inputs = True
 
     def setup(self, n, coulomb, viscous, velocity_scale):
         if n < 1:
@@ -434,13 +483,23 @@ class Friction(Block):
         self.set_param("coulomb", fc)
         self.set_param("viscous", fv)
         self.set_param("velocity_scale", np.full(1, velocity_scale))
-        self.set_kernels(output=friction_output,
+        # the sign (velocity_scale 0) jumps where qdot_i crosses 0 (tanh: no guard, +1);
+        # it is held in the state between crossings, so no Runge-Kutta stage of a step
+        # sees the other sign (the located crossing then keeps the solver's order)
+        self.declare_state(n, 0.0)
+        self.state_labels = [f"sign[{i}]" for i in range(n)]
+        self.set_kernels(output=friction_output, derivative=friction_derivative,
                          params=("coulomb", "viscous", "velocity_scale"))
-        # the sign (velocity_scale 0) jumps where qdot_i crosses 0 (tanh: no guard, +1)
         self.declare_zero_crossings(("qdot",), n)
+
+    def initial_state(self, t0, u):
+        return np.sign(_flat(u[0])) + np.zeros((self.p.coulomb.shape[0], 1))
 
     def zero_crossings(self, t, x, u):
         return np.where(self.p.velocity_scale[:, None] > 0.0, 1.0, _flat(u[0]))
+
+    def crossed(self, t, x, u, which):
+        return np.where(which, np.where(_flat(u[0]) >= 0.0, 1.0, -1.0), x)
 
 
 @register
@@ -448,7 +507,10 @@ class Switch(Block):
     """Switch: passes u1 where control >= threshold, u2 elsewhere.
 
     Equation: y = u1 if control >= threshold, else u2 (per element when control has the
-    data's shape; one choice for the whole signal when control is a scalar).
+    data's shape; one choice for the whole signal when control is a scalar).  The choice
+    is a state of the block (+1: u1, -1: u2; from control at t = 0), changed only where
+    control - threshold crosses 0 (a located zero crossing), so every Runge-Kutta stage
+    of a step sees one input.
 
     Ports:
         | port    | direction | shape              | feedthrough        |
@@ -469,6 +531,7 @@ class Switch(Block):
         "per_element": Param("bool", False, "control has the data's shape"),
     }
     example = {"threshold": 0.5, "shape": [2]}
+    init_from_inputs = True
 
     def setup(self, threshold, shape, per_element):
         shape = _shape(self, shape)
@@ -482,12 +545,22 @@ class Switch(Block):
             kernel = switch_output_same
         else:
             kernel = switch_output_scalar1 if len(shape) == 1 else switch_output_scalar2
-        self.set_kernels(output=kernel, params=("threshold",))
-        self.declare_zero_crossings(("control",), int(np.prod(shape, dtype=np.int64))
-                                    if per_element else 1)
+        size = int(np.prod(shape, dtype=np.int64)) if per_element else 1
+        # the choice is held in the state between crossings of control - threshold, so
+        # no Runge-Kutta stage of a step sees the other input
+        self.declare_state(size, 0.0)
+        self.state_labels = [f"choice[{i}]" for i in range(size)]
+        self.set_kernels(output=kernel, derivative=switch_derivative, params=("threshold",))
+        self.declare_zero_crossings(("control",), size)
+
+    def initial_state(self, t0, u):
+        return np.where(self.zero_crossings(t0, None, u) >= 0.0, 1.0, -1.0)
 
     def zero_crossings(self, t, x, u):
         return _flat(u[1]) - self.p.threshold.reshape((self.p.threshold.shape[0], 1))
+
+    def crossed(self, t, x, u, which):
+        return np.where(which, np.where(self.zero_crossings(t, x, u) >= 0.0, 1.0, -1.0), x)
 
 
 @register
@@ -655,7 +728,7 @@ def limited_integrator_derivative(t, x, u, reset, value, lower, upper, n, scalar
     """x' = u while free (mode 0), 0 while held at a limit (mode -1 lower, +1 upper)."""
     uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
     dx = np.zeros(x.shape)
-    dx[:, :n] = np.where(x[:, n:] == 0.0, uf, 0.0)
+    dx[:, :n] = np.where(np.abs(x[:, n:]) < 0.5, uf, 0.0)
     return dx
 
 
@@ -665,8 +738,8 @@ def limited_integrator_guards(x, u, reset, lower, upper, n):
     xi, m = x[:, :n], x[:, n:]
     uf = np.ascontiguousarray(u).reshape((u.shape[0], n))
     rf = np.ascontiguousarray(reset).reshape((reset.shape[0], n))
-    g_lo = np.where(m < 0, uf, xi - lower)
-    g_hi = np.where(m > 0, -uf, upper - xi)
+    g_lo = np.where(m < -0.5, uf, xi - lower)
+    g_hi = np.where(m > 0.5, -uf, upper - xi)
     B = max(g_lo.shape[0], g_hi.shape[0], rf.shape[0])
     return np.concatenate((np.broadcast_to(g_lo, (B, n)), np.broadcast_to(g_hi, (B, n)),
                            np.broadcast_to(rf, (B, n))), axis=1)
@@ -744,9 +817,9 @@ class LimitedIntegrator(Block):
         lo, hi = self.p.lower, self.p.upper
         lo_b, hi_b = np.broadcast_to(lo, xi.shape), np.broadcast_to(hi, xi.shape)
         w_lo, w_hi, w_reset = which[:, :n], which[:, n:2 * n], which[:, 2 * n:]
-        hit_lo = w_lo & (m == 0)                 # reached the lower limit: held there
-        hit_hi = w_hi & (m == 0)
-        left = (w_lo & (m < 0)) | (w_hi & (m > 0))       # u points back inside: free
+        hit_lo = w_lo & (np.abs(m) < 0.5)        # reached the lower limit: held there
+        hit_hi = w_hi & (np.abs(m) < 0.5)
+        left = (w_lo & (m < -0.5)) | (w_hi & (m > 0.5))       # u points back inside: free
         xi = np.where(hit_lo, lo_b, np.where(hit_hi, hi_b, xi))
         m = np.where(hit_lo, -1.0, np.where(hit_hi, 1.0, np.where(left, 0.0, m)))
         r = np.ascontiguousarray(u[1]).reshape((u[1].shape[0], n))

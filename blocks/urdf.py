@@ -32,7 +32,7 @@ from fwdstep.core.registry import register
 
 from . import rigid_body as rb
 from .rigid_body import forward_dynamics, frame_kinematics, regressor as christoffel_regressor
-from .nonlinear import friction_output
+from .nonlinear import friction_law
 from .robot import MechanicalPlant
 
 INSTALL_HINT = "install fwdstep[robots]"
@@ -332,7 +332,7 @@ def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous
     qdot = x[:, n:]
     torque = tau + tau_star
     if friction:
-        torque = torque + friction_output(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+        torque = torque + friction_law(t, x, qdot, coulomb, viscous, velocity_scale)[0]
     qddot = forward_dynamics(tree, gravity, inertia, q, qdot, torque)
     dx = np.empty((qddot.shape[0], 2 * n))
     dx[:, :n] = qdot
@@ -513,7 +513,7 @@ class URDFArm(MechanicalPlant):
         p = self.p
         torque = u[0] + u[1]
         if self.kernels.static[0]:
-            torque = torque + friction_output(t, x, x[:, n:], p.coulomb, p.viscous,
+            torque = torque + friction_law(t, x, x[:, n:], p.coulomb, p.viscous,
                                               p.velocity_scale)[0]
         if B > 1:
             x = np.broadcast_to(x, (B, 2 * n))

@@ -241,6 +241,7 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         code = code or signals.exit_code(late)
     if not quiet:
         from fwdstep.run.limits import describe
+        from fwdstep.results.result import events_line
         for line in describe(result.limits):
             print(f"fwdstep: note: {line}", file=sys.stderr)
         m = result.metrics()
@@ -248,6 +249,8 @@ def _run_into(out, d, plots: bool, quiet: bool, backend, formats, log_dir=None,
         line = f"{result.status}: {reached} in {result.wall_time:.2f} s wall"
         if result.status == "stopped":
             line += f" ({result.message})"
+        if result.events:
+            line += "; " + events_line(result.events)
         if m and m.get("final_error_norm") is not None:     # names: fwdstep.results.result
             line += (f"; final |e|_2 = {m['final_error_norm']:.3e}; over the last "
                      f"{int(100 * d.spec.metrics.get('tail', 0.2))}%: max |e|_2 = "

@@ -5,6 +5,7 @@ import html
 import json
 import os
 import tempfile
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,6 +15,26 @@ from fwdstep.core.jsonable import jsonable as _jsonable
 
 RESULT_FILE = "result.npz"
 SUMMARY_FILE = "summary.json"
+
+
+@dataclass(frozen=True)
+class CrossingEvent:
+    """One located state event (``fwdstep.run.crossings``): ``time`` (s), ``block`` (name),
+    ``kind`` (guard name and direction, e.g. 'upper rising', or 'chattering'), ``variant``
+    (of a batch).  Listed in ``Result.events`` and in summary.json's "events"."""
+    time: float
+    block: str
+    kind: str
+    variant: int = 0
+
+
+def events_line(events) -> str:
+    """One line about a run's located state events, e.g. "2 state events located (first:
+    t = 2.37 s, block 'sat' upper falling)"."""
+    first = events[0]
+    where = f" in variant {first.variant}" if first.variant else ""
+    return (f"{len(events)} state event{'s' if len(events) != 1 else ''} located (first: "
+            f"t = {first.time:.9g} s, block '{first.block}' {first.kind}{where})")
 
 
 class Result:
@@ -176,6 +197,10 @@ class Result:
             "wall_time_s": round(self.wall_time, 6),
             "metrics": _jsonable(self.metrics()),
             **({"limits": _jsonable(self.limits)} if self.limits else {}),
+            **({"events": [{"time": float(e.time), "block": e.block, "kind": e.kind,
+                            "variant": int(e.variant)} for e in self.events]}
+               if self.events else {}),
+            **({"notes": list(self.notes)} if self.notes else {}),
             "signals": {k: list(v.shape[2:]) for k, v in self._signals.items()},
             **_figure_summary(self),
         }
@@ -308,7 +333,10 @@ def load_result(outdir: str) -> Result:
     signals = {k: (v[:, None] if batch == 1 else v) for k, v in arrays.items()}
     r = Result(t, signals, status=summary.get("status", "ok"),
                message=summary.get("message", ""), wall_time=summary.get("wall_time_s", 0.0),
-               steps=summary.get("steps", 0))
+               steps=summary.get("steps", 0),
+               events=[CrossingEvent(float(e["time"]), e["block"], e["kind"], e["variant"])
+                       for e in summary.get("events") or []],
+               notes=summary.get("notes") or [])
     r.batch = batch
     r.stored = summary
     r.limits = summary.get("limits") or []
@@ -329,7 +357,10 @@ _SUMMARY_KINDS = {
     "wall_time_s": (int, float), "metrics": (dict, list, type(None)),
     "signals": (dict, type(None)), "figures": (dict, type(None)),
     "signal_labels": (dict, type(None)), "aliases": (dict, type(None)),
+    "events": (list, type(None)), "notes": (list, type(None)),
 }
+#: the fields of one entry of summary.json's "events" and their JSON kinds
+_EVENT_KINDS = {"time": (int, float), "block": (str,), "kind": (str,), "variant": (int,)}
 
 
 def read_summary(path: str) -> dict:
@@ -352,6 +383,14 @@ def read_summary(path: str) -> dict:
                               "writes there (was it edited by hand?)")
     if summary.get("batch", 1) < 1:
         raise DamagedFileError(f"{shown}: 'batch' must be 1 or more")
+    for k, event in enumerate(summary.get("events") or []):
+        if not isinstance(event, dict) or any(
+                not isinstance(event.get(f), kinds) or isinstance(event.get(f), bool)
+                for f, kinds in _EVENT_KINDS.items()):
+            raise DamagedFileError(f"{shown}: event {k + 1} is not a mapping of time (number), "
+                                   "block, kind (text) and variant (whole number)")
+    if not all(isinstance(n, str) for n in summary.get("notes") or []):
+        raise DamagedFileError(f"{shown}: 'notes' must be a list of text lines")
     for name, panels in (summary.get("figures") or {}).items():
         if not isinstance(panels, list) or not all(
                 isinstance(p, dict) and isinstance(p.get("signals"), list)

@@ -26,26 +26,15 @@ signs; the end pass is the next step's stage 1 (and record), so nothing is evalu
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
+from fwdstep.results.result import CrossingEvent
 from fwdstep.run.events import apply_updates
 
 #: the located crossing time is within this of the exact root of the computed trajectory
 CROSSING_TOL = 1e-13
 #: more crossings of one block within one grid step than this: chattering
 CHATTER = 8
-
-
-@dataclass(frozen=True)
-class CrossingEvent:
-    """One located crossing: ``time`` (s), ``block`` (name), ``kind`` (guard name and
-    direction, e.g. 'upper rising', or 'chattering'), ``variant`` (of a batch)."""
-    time: float
-    block: str
-    kind: str
-    variant: int = 0
 
 
 def crossing_steps(d) -> tuple:
@@ -346,44 +335,62 @@ def _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi) -> float:
     """The step size tau in (0, H] just past the earliest sign change of an active guard
     along the computed trajectory from (ta, x0), where x and G hold the step of size H;
     leaves x at the step of size tau."""
-    s0 = G0 >= 0
-
     def at(tau):
         x[...] = x0
         K0[...] = K0a
         prog.rest_h(ta, tau, lo, hi)
         prog.first_ts(min(ta + tau, hi))
-        return G.copy()
+        return G.copy(), x.copy()
 
+    tau, x[...] = earliest(at, G0, G.copy(), x.copy(), active, H,
+                           max(CROSSING_TOL, 4 * math.ulp(ta + H)))
+    return tau
+
+
+def earliest(at, G0, GH, xh, active, H: float, tol: float, guess: float | None = None):
+    """The least tau in (0, H] (within tol) at which an ``active`` guard has left its sign
+    in G0 (the guards at 0), on the map ``at(tau)`` -> (guards, state) (the solver's step
+    of size tau); GH, xh: ``at(H)``, where some guard has left it.  Secant proposals on the
+    guards that changed (``guess`` first, if given), bisection when one end of the bracket
+    stays twice.  Returns (tau, the state there)."""
+    s0 = G0 >= 0
     tl, gl = 0.0, G0
-    th, gh, xh = H, G.copy(), x.copy()
-    tol = max(CROSSING_TOL, 4 * math.ulp(ta + H))
+    th, gh = H, GH
     kept = 0                                   # +k: the lower end moved k times in a row
     for _ in range(200):
         if th - tl <= tol:
             break
         ch = ((gl >= 0) != (gh >= 0)) & active
-        if abs(kept) >= 2 or not ch.any():
+        if guess is not None and tl < guess < th:
+            p, guess = guess, None
+        elif abs(kept) >= 2 or not ch.any():
             p = 0.5 * (tl + th)
         else:
             a, b = gl[ch], gh[ch]
             p = float(np.min(tl + (th - tl) * (a / (a - b))))
         p = min(max(p, tl + 0.25 * tol), th - 0.25 * tol)
-        gp = at(p)
+        gp, xp = at(p)
         if (((gp >= 0) != s0) & active).any():
-            th, gh, xh = p, gp, x.copy()
+            th, gh, xh = p, gp, xp
             kept = kept - 1 if kept < 0 else -1
         else:
             tl, gl = p, gp
             kept = kept + 1 if kept > 0 else 1
-    x[...] = xh
-    return th
+    return th, xh
 
 
 def _crossed(bk, out, te: float, ts: float, G0, active) -> bool:
-    """At te, just past a located crossing: the guards' new signs, each crossing block's
-    ``crossed``, the events listed, chattering and Stop handled.  True: the run ends."""
-    prog, x, zc = bk.prog, bk.x, bk.crossings
+    """``act`` on the fixed-step backend's program and state.  True: the run ends."""
+    stop = act(bk.prog, bk.x, bk.crossings, out, te, ts, G0, active)
+    bk.fresh = None
+    return stop
+
+
+def act(prog, x, zc: Crossings, out, te: float, ts: float, G0, active) -> bool:
+    """At te, just past a located crossing, the state ``x`` (B, N) (the program's ``xn``):
+    the guards' new signs, each crossing block's ``crossed`` (x changed in place), the
+    events listed, chattering and Stop handled; the same for every backend that locates
+    crossings (fixed step here, solve_ivp in ``fwdstep.run.ivp``).  True: the run ends."""
     sig = prog.sample_signals(ts)              # outputs and guards at (ts, x)
     G = prog.G
     changed = ((G >= 0) != (G0 >= 0)) & active
@@ -422,25 +429,26 @@ def _crossed(bk, out, te: float, ts: float, G0, active) -> bool:
                      "from there on its crossings are not located, its regime follows at "
                      "step boundaries")
             zc.quiet[k] = True
-    bk.fresh = None
     return False
 
 
 def _follow_inactive(bk, ts: float) -> None:
-    """Blocks whose crossings are no longer located (chattering): their regime follows the
-    guards' signs at each step boundary (``crossed`` without location)."""
-    zc = bk.crossings
-    if not any(zc.quiet):
-        return
-    prog, x = bk.prog, bk.x
-    prev = getattr(bk, "_quiet_signs", None)
+    """``follow_quiet`` on the fixed-step backend's program and state."""
+    if any(bk.crossings.quiet):
+        bk._quiet_signs = follow_quiet(bk.prog, bk.x, bk.crossings,
+                                       getattr(bk, "_quiet_signs", None), ts)
+
+
+def follow_quiet(prog, x, zc: Crossings, prev, ts: float):
+    """Blocks whose crossings are no longer located (chattering): at a step boundary ts,
+    their regime follows the guards' signs since ``prev`` (the signs at the previous
+    boundary; None: the first) through ``crossed`` without location; the signs now."""
     now = prog.G >= 0
-    bk._quiet_signs = now.copy()
     if prev is None:
-        return
+        return now.copy()
     changed = (now != prev) & ~zc.active
     if not changed.any():
-        return
+        return now.copy()
     sig = prog.sample_signals(ts)
     for st, cols, quiet in zip(zc.steps, zc.cols, zc.quiet):
         which = changed[:, cols]
@@ -450,4 +458,4 @@ def _follow_inactive(bk, ts: float) -> None:
                 rows = which.any(axis=1)
                 x[rows, st.state] = np.broadcast_to(new, (x.shape[0], st.block.n_states))[rows]
     prog.first_ts(ts)
-    bk._quiet_signs = prog.G >= 0
+    return prog.G >= 0

@@ -40,7 +40,7 @@ run ends (divergence, outputs not finite, errors, Ctrl-C) and the Result.  The b
 * ``compiled`` (``fwdstep.compiled.driver``, loaded by name: the run layer never imports it):
   the same procedure in numba, advanced a chunk of steps at a time;
 * solve_ivp (``fwdstep.run.ivp``): scipy's adaptive solvers, advanced one segment between
-  declared discontinuities at a time.
+  declared discontinuities at a time (restarted at each located zero crossing).
 
 The procedure itself is stated once as data (``fwdstep.core.solvers.step_plan``: the nonzero
 coefficients in the order they are summed) and run by ``fwdstep.core.solvers.rk_step`` (the
@@ -54,7 +54,6 @@ import time as _time
 
 import numpy as np
 
-from fwdstep.core.block import Block
 from fwdstep.core.errors import ConfigError, DiagramError, SimulationError
 from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS
@@ -229,14 +228,6 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
     plan = plan_events(d, cfg.step, cfg.n_steps)
     notes = []
     located = crossing_steps(d)
-    if located and cfg.solver in IVP_METHODS:
-        acting = [st.block for st in located if st.block.stops_run
-                  or type(st.block).crossed is not Block.crossed]
-        if acting:
-            blk = acting[0]
-            raise ConfigError(f"solver '{cfg.solver}' does not locate zero crossings, which "
-                              f"block '{blk.name}' ({blk.type_name}) acts on; use a "
-                              "fixed-step solver (rk4)", file=d.file, block=blk.name)
     if located and name == "compiled" and cfg.solver not in IVP_METHODS:
         blk = located[0].block
         notes.append(f"block '{blk.name}' ({blk.type_name}) has zero crossings, which the "

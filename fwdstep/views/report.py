@@ -207,6 +207,7 @@ def report_html(run_dir: str) -> str:
         m = s.get("metrics")
         parts.append(_table(m) if isinstance(m, list) else _pairs(m or {}))
         parts += _limits(s.get("limits"))
+        parts += _events(r)
         parts += _animation(r, run_dir)
         parts += _linear(run_dir)
         parts.append("<h2>Figures</h2>")
@@ -235,6 +236,32 @@ def report_html(run_dir: str) -> str:
             f"<title>fwdstep report: {html.escape(title)}</title><style>{_CSS}</style></head>"
             f"<body>{''.join(parts)}<p style=\"color:#888;font-size:.8em\">{_MARK}</p>"
             "</body></html>\n")
+
+
+#: at most this many state events are listed on the page (all are in summary.json)
+MAX_EVENTS_SHOWN = 200
+
+
+def _events(r) -> list:
+    """The "State events" section: the located zero crossings (time, block, kind, variant)
+    and the run's notes (chattering), when there are any."""
+    if not r.events and not r.notes:
+        return []
+    from fwdstep.results.result import events_line
+    out = ["<h2>State events</h2>"]
+    if r.events:
+        out.append(f"<p>{html.escape(events_line(r.events))}.</p>")
+        batch = any(e.variant for e in r.events)
+        rows = [{"time [s]": e.time, "block": e.block, "event": e.kind,
+                 **({"variant": e.variant} if batch else {})}
+                for e in r.events[:MAX_EVENTS_SHOWN]]
+        out.append(_table(rows))
+        if len(r.events) > MAX_EVENTS_SHOWN:
+            out.append(f"<p>… and {len(r.events) - MAX_EVENTS_SHOWN} more (all in "
+                       "summary.json).</p>")
+    for note in r.notes:
+        out.append(f"<p>Note: {html.escape(note)}</p>")
+    return out
 
 
 def _limits(record) -> list:

@@ -195,3 +195,80 @@ def test_theorem1_lyapunov_identity_on_two_link_arm():
 def test_rejects_bad_parameters(params, message):
     with pytest.raises(ParameterError, match=message):
         AdaptationLaw("adapt", **params)
+
+
+# ------------------------------------------------------------------ ball projection
+@pytest.mark.parametrize("gamma", [2.5, [1.0, 2.0, 0.5], SPD], ids=["scalar", "diag", "spd"])
+def test_ball_projection_derivative_inside_and_on_the_sphere(gamma):
+    """Inside: the plain law -Gamma W^T e.  On the sphere with the update pointing out:
+    Ioannou & Sun's tau - Gamma d (d^T tau) / (d^T Gamma d), tangent to the sphere (for a
+    scalar gain: tau less its normal component), all computed here with numpy."""
+    rng = np.random.default_rng(7)
+    c, r = np.array([0.5, -0.2, 1.0]), 2.0
+    law = AdaptationLaw("a", regressor_shape=[2, 3], gamma=gamma, radius=r, center=c)
+    G = np.diag(np.broadcast_to(np.asarray(gamma, dtype=float), (3,))) \
+        if np.ndim(gamma) < 2 else SPD
+    for _ in range(20):
+        W, e = rng.standard_normal((1, 2, 3)), rng.standard_normal((1, 2))
+        tau = -G @ W[0].T @ e[0]
+        inside = c + 0.9 * r * rng.uniform(-1, 1, 3) / math.sqrt(3)
+        dx = law.derivative(0.0, np.append(inside, 0.0)[None], (W, e))
+        np.testing.assert_allclose(dx[0, :3], tau, rtol=1e-13, atol=1e-14)
+        n = rng.standard_normal(3)
+        n *= np.sign(n @ tau) / np.linalg.norm(n)          # an outward normal: n . tau > 0
+        on = c + r * n
+        dx = law.derivative(0.0, np.append(on, 1.0)[None], (W, e))
+        d = on - c
+        expected = tau - G @ d * (d @ tau) / (d @ G @ d)
+        np.testing.assert_allclose(dx[0, :3], expected, rtol=1e-12, atol=1e-13)
+        assert abs(d @ dx[0, :3]) < 1e-12
+        if np.ndim(gamma) == 0:
+            np.testing.assert_allclose(dx[0, :3], tau - n * (n @ tau), rtol=1e-12, atol=1e-13)
+        assert law.zero_crossings(0.0, np.append(on, 1.0)[None], (W, e))[0, 0] < 0
+
+
+BALL_LAW = """
+blocks:
+  W:  {type: Constant, value: [[1.0, 0.0], [0.0, 1.0]]}
+  e:  {type: Step, before: [-1.0, 0.0], after: [1.0, 0.0], time: 2.0}
+  th: {type: AdaptationLaw, regressor_shape: [2, 2], gamma: 1.0, theta0: [0.0, 0.5],
+       radius: 1.0}
+connections:
+  - W.y -> th.W
+  - e.y -> th.e
+simulation: {t_final: 3.0, step: 0.05, solver: rk4}
+"""
+
+
+@pytest.mark.parametrize("solver, tol", [("rk4", 1e-7), ("dop853", 1e-9)])
+def test_ball_projection_slides_on_the_sphere_and_leaves_it(tmp_path, solver, tol):
+    """tau = (1, 0) from (0, 0.5): a straight line to the unit circle at t1 = sqrt(3)/2
+    (angle pi/6), then the projected flow phi' = -sin(phi), tan(phi/2) = tan(pi/12)
+    e^-(t - t1); at t = 2 the update turns to (-1, 0), inward: it leaves the sphere and
+    goes straight on.  The estimate never leaves the ball."""
+    import fwdstep
+    path = tmp_path / "ball.yaml"
+    path.write_text(BALL_LAW)
+    r = fwdstep.simulate(fwdstep.load_diagram(str(path), overrides={
+        "simulation.solver": solver, "simulation.rtol": 1e-11, "simulation.atol": 1e-11}))
+    t, th = r.t, r["th.theta_hat"]
+    t1 = math.sqrt(0.75)
+    phi = 2 * np.arctan(math.tan(math.pi / 12) * np.exp(-(np.minimum(t, 2.0) - t1)))
+    on = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    exact = np.where((t < t1)[:, None], np.stack([t, 0.5 + 0 * t], axis=1), on)
+    exact = np.where((t >= 2.0)[:, None], on - np.stack([t - 2.0, 0 * t], axis=1), exact)
+    np.testing.assert_allclose(th, exact, rtol=0, atol=tol)
+    assert np.linalg.norm(th, axis=1).max() <= 1.0 + 1e-12
+    assert [e.kind for e in r.events] == ["ball falling", "ball rising"]
+    np.testing.assert_allclose([e.time for e in r.events], [t1, 2.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"lower": -1.0, "radius": 1.0}, "one projection"),
+    ({"radius": 1.0, "theta0": [1.0, 1.0]}, "theta0 in the ball"),
+    ({"radius": 0.0}, "'radius' must be positive"),
+    ({"radius": 1.0, "center": [1.0, 2.0, 3.0]}, "'center' must be a number or 2 numbers"),
+])
+def test_ball_projection_rejects_bad_parameters(params, message):
+    with pytest.raises(ParameterError, match=message):
+        AdaptationLaw("a", regressor_shape=[1, 2], **params)

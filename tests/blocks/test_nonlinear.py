@@ -102,7 +102,7 @@ def test_rate_limiter_refuses_non_positive_rates_and_time_constant():
 def test_friction_coulomb_plus_viscous_opposes_the_velocity():
     blk = Friction("f", n=3, coulomb=[0.5, 0.3, 0.0], viscous=[0.2, 0.0, 1.5])
     qdot = np.array([[2.0, -1.0, -0.5], [0.0, 1e-9, 3.0]])
-    (tau,) = blk.output(0.0, NO_STATE, (qdot,))
+    (tau,) = blk.output(0.0, np.zeros((2, 3)), (qdot,))    # no sign held: sign(qdot)
     expected = -(np.array([0.5, 0.3, 0.0]) * np.sign(qdot) + np.array([0.2, 0.0, 1.5]) * qdot)
     np.testing.assert_array_equal(tau, expected)
     assert tau[1, 0] == 0.0        # sign(0) = 0: no Coulomb torque at rest
@@ -111,10 +111,10 @@ def test_friction_coulomb_plus_viscous_opposes_the_velocity():
 def test_smoothed_friction_is_tanh_and_tends_to_sign():
     qdot = np.array([[0.05, -0.2, 3.0]])
     smooth = Friction("f", n=3, coulomb=1.0, velocity_scale=0.1)
-    (tau,) = smooth.output(0.0, NO_STATE, (qdot,))
+    (tau,) = smooth.output(0.0, np.zeros((1, 3)), (qdot,))
     np.testing.assert_allclose(tau, -np.tanh(qdot / 0.1), rtol=1e-15)
     sharp = Friction("f", n=3, coulomb=1.0, velocity_scale=1e-9)
-    (tau,) = sharp.output(0.0, NO_STATE, (qdot,))
+    (tau,) = sharp.output(0.0, np.zeros((1, 3)), (qdot,))
     np.testing.assert_allclose(tau, -np.sign(qdot), rtol=1e-12)
 
 
@@ -149,15 +149,15 @@ def test_switch_scalar_control_picks_the_whole_signal():
     u1 = np.array([[1.0, 2.0], [1.0, 2.0], [1.0, 2.0]])
     u2 = -u1
     control = np.array([0.5, 0.49, 7.0])
-    (y,) = blk.output(0.0, NO_STATE, (u1, control, u2))
+    (y,) = blk.output(0.0, blk.initial_state(0.0, (u1, control, u2)), (u1, control, u2))
     np.testing.assert_array_equal(y, [[1.0, 2.0], [-1.0, -2.0], [1.0, 2.0]])
 
 
 def test_switch_per_element_control():
     blk = Switch("s", shape=[3], per_element=True)
     assert blk.inputs["control"].shape == (3,)
-    (y,) = blk.output(0.0, NO_STATE, (np.ones((1, 3)), np.array([[1.0, -1.0, 0.0]]),
-                                      np.zeros((1, 3))))
+    u = (np.ones((1, 3)), np.array([[1.0, -1.0, 0.0]]), np.zeros((1, 3)))
+    (y,) = blk.output(0.0, blk.initial_state(0.0, u), u)
     np.testing.assert_array_equal(y, [[1.0, 0.0, 1.0]])
 
 
@@ -198,7 +198,8 @@ def test_batched_limits_and_tables_match_single_variants():
         singles = [cls("b", **v) for v in variants]
         big = stack_blocks([[cls("b", **v)] for v in variants])[0]
         u = rng.standard_normal((len(variants),) + shape)
-        (yb,) = big.output(0.0, NO_STATE, (u,))
+        x = np.zeros((len(variants), big.n_states))     # (Friction: no sign held)
+        (yb,) = big.output(0.0, x, (u,))
         for i, single in enumerate(singles):
-            (ys,) = single.output(0.0, NO_STATE, (u[i:i + 1],))
+            (ys,) = single.output(0.0, x[i:i + 1], (u[i:i + 1],))
             np.testing.assert_array_equal(yb[i], ys[0])

@@ -345,7 +345,7 @@ def test_urdf_damping_and_friction_act_through_the_friction_law(tmp_path, implem
     law = Friction("f", n=2, coulomb=[0.4, 0.1], viscous=[0.2, 0.05], velocity_scale=0.05)
     for q, v, tau, _ in points(2, 4, 9):
         dx = arm.derivative(0.0, np.concatenate([q, v])[None], (tau[None], np.zeros((1, 2))))
-        tau_f = law.output(0.0, None, (v[None],))[0][0]
+        tau_f = law.output(0.0, np.zeros((1, 2)), (v[None],))[0][0]
         np.testing.assert_allclose(tau_f, -(np.array([0.4, 0.1]) * np.tanh(v / 0.05)
                                             + np.array([0.2, 0.05]) * v), rtol=1e-15)
         np.testing.assert_allclose(dx[0, 2:], pin.aba(model, data, q, v, tau + tau_f),

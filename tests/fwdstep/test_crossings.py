@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import fwdstep
-from fwdstep.core.errors import ConfigError
 
 
 def _run(tmp_path, text, name="d.yaml", **kw):
@@ -189,11 +188,6 @@ def test_compiled_backend_falls_back_with_a_note(tmp_path):
     n = _run(tmp_path, SAT.format(upper=1.0, h=0.1))
     assert len(r.notes) == 1 and "numpy backend" in r.notes[0]
     np.testing.assert_array_equal(r["i.y"], n["i.y"])
-
-
-def test_solve_ivp_refuses_blocks_acting_on_crossings(tmp_path):
-    with pytest.raises(ConfigError, match="does not locate zero crossings.*'relay' \\(Relay\\)"):
-        _run(tmp_path, RELAY.replace("solver: rk4", "solver: dop853"))
 
 
 def test_adaptation_law_projection_keeps_the_estimate_in_its_box(tmp_path):

@@ -202,3 +202,32 @@ def test_every_verb_takes_plugin_and_a_plugin_runs_report_draws_it(diagram, tmp_
     verbs = [a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction"]
     for name, parser in verbs[0].choices.items():          # every verb, also those to come
         assert "--plugin" in {o for a in parser._actions for o in a.option_strings}, name
+
+
+COUNTER = os.path.join(ROOT, "examples", "plugins", "crossing_counter.py")
+
+
+@pytest.mark.parametrize("solver", ["rk4", "dop853"])
+def test_the_documented_crossing_counter_counts_at_the_exact_times(tmp_path, solver):
+    """The zero-crossing example of docs/writing-blocks.md (shown there verbatim): u = sin t
+    rises through 0 at 2 pi and 4 pi (falls at pi, 3 pi): the count steps exactly there."""
+    with open(os.path.join(ROOT, "docs", "writing-blocks.md"), encoding="utf-8") as fh:
+        doc = fh.read()
+    with open(COUNTER, encoding="utf-8") as fh:
+        assert fh.read() in doc
+    path = tmp_path / "count.yaml"
+    path.write_text(f"""
+blocks:
+  s: {{type: Sine, amplitude: 1.0, frequency: 1.0}}
+  c: {{type: CrossingCounter}}
+connections:
+  - s.y -> c.u
+simulation: {{t_final: 14.0, step: 0.1, solver: {solver}}}
+""")
+    r = fwdstep.simulate(fwdstep.load_diagram(str(path), plugins=[COUNTER]))
+    pi = np.pi
+    np.testing.assert_allclose([e.time for e in r.events], [pi, 2 * pi, 3 * pi, 4 * pi],
+                               rtol=0, atol=1e-12)
+    assert [e.kind for e in r.events] == ["level falling", "level rising"] * 2
+    np.testing.assert_array_equal(r["c.y"], (r.t >= 2 * pi).astype(float)
+                                  + (r.t >= 4 * pi))

@@ -189,3 +189,56 @@ def test_chromium_shows_the_whole_diagram_and_a_click_opens_it(tmp_path):
     assert int(natural_w) > int(room) and abs(int(width) - int(room)) <= 1
     assert abs(int(height) / int(width) - int(natural_h) / int(natural_w)) < 0.02
     assert re.search(r'data-opened="blob: true"', dom)                 # the click opens it
+
+
+STOPPED = """
+description: x' = -1 from 1.234 until x reaches 0 (a Stop); a Saturation at 0.5 on the way
+blocks:
+  one:  {type: Constant, value: -1.0}
+  x:    {type: Integrator, initial: 1.234}
+  sat:  {type: Saturation, lower: -0.5, upper: 0.5}
+  stop: {type: Stop}
+connections:
+  - one.y -> x.u
+  - x.y -> sat.u
+  - x.y -> stop.u
+simulation: {t_final: 5.0, step: 0.1, solver: rk4}
+"""
+
+
+def test_state_events_are_saved_read_back_and_on_the_page(tmp_path, capsys):
+    """The located crossings (x = 0.5 at t = 0.734, the Stop at t = 1.234) are in
+    summary.json, come back from load_result as the run's own events, are said in the
+    run's summary line and listed on the report page."""
+    import fwdstep
+    path = tmp_path / "stop.yaml"
+    path.write_text(STOPPED)
+    fresh = fwdstep.simulate(fwdstep.load_diagram(str(path)))
+    assert main(["run", str(path), "-o", str(tmp_path / "out"), "--report"]) == 0
+    line = capsys.readouterr().out
+    assert "stopped: t = 1.234 s" in line
+    assert "2 state events located (first: t = 0.734 s, block 'sat' upper falling)" in line
+    back = fwdstep.load_result(str(tmp_path / "out"))
+    assert back.events == fresh.events
+    assert [(e.block, e.kind) for e in back.events] == [("sat", "upper falling"),
+                                                        ("stop", "u falling")]
+    np.testing.assert_allclose([e.time for e in back.events], [0.734, 1.234], atol=1e-12)
+    page = _Page()
+    page.feed((tmp_path / "out" / "report.html").read_text())
+    text = " ".join(page.text)
+    assert "State events" in text and "upper falling" in text and "u falling" in text
+
+
+def test_a_hand_edited_event_is_refused_in_one_line(tmp_path):
+    import json
+    import fwdstep
+    from fwdstep.core.errors import DamagedFileError
+    path = tmp_path / "stop.yaml"
+    path.write_text(STOPPED)
+    assert main(["run", str(path), "-o", str(tmp_path / "out"), "--no-plots", "-q"]) == 0
+    summ = tmp_path / "out" / "summary.json"
+    s = json.loads(summ.read_text())
+    s["events"][1]["time"] = "soon"
+    summ.write_text(json.dumps(s))
+    with pytest.raises(DamagedFileError, match="event 2 is not a mapping of time"):
+        fwdstep.load_result(str(tmp_path / "out"))
