@@ -719,9 +719,12 @@ class Stop(Block):
 # ----------------------------------------------------------------------------- limited integrator
 def limited_integrator_output(t, x, u, reset, value, lower, upper, n, scalar):
     """y = the integral (the first n states)."""
-    if scalar:
-        return (x[:, 0].copy(),)
     return (x[:, :n].copy(),)
+
+
+def limited_integrator_output_scalar(t, x, u, reset, value, lower, upper, n, scalar):
+    """y = the integral (a scalar signal: one kernel per output rank, so numba types each)."""
+    return (x[:, 0].copy(),)
 
 
 def limited_integrator_derivative(t, x, u, reset, value, lower, upper, n, scalar):
@@ -803,7 +806,8 @@ class LimitedIntegrator(Block):
         self.set_param("lower", lo)
         self.set_param("upper", hi)
         self._n = n
-        self.set_kernels(output=limited_integrator_output,
+        self.set_kernels(output=(limited_integrator_output_scalar if shape == ()
+                                 else limited_integrator_output),
                          derivative=limited_integrator_derivative,
                          params=("lower", "upper"), static=(n, shape == ()))
         self.declare_zero_crossings(("lower", "upper", "reset"), n)
