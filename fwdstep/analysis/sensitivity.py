@@ -326,11 +326,14 @@ class SensitivityChain:
         self.constant = {idx: np.zeros((int(np.prod(d.signal_shapes[idx], dtype=np.int64)),
                                         P)) for idx in d.constant_signals}
 
-    def outputs(self, t, x, S, sig) -> tuple:
+    def outputs(self, t, x, S, sig, time=None) -> tuple:
         """(signal sensitivities, [(block, its rows so far, J)]) at (t, x): the outputs'
         rows complete, the state derivative rows without the inputs' terms.  S may have
         more columns than the P parameters': those are directions of the state alone (no
-        parameter term; a crossing's tangents)."""
+        parameter term; a crossing's tangents).  ``time``: (seed, lo, hi): column c also
+        moves t by seed[c] (each block's explicit time derivative at fixed state and
+        inputs, ``_time_derivative`` within [lo, hi], carried by the chain rule: a kink
+        of a block in its inputs is never straddled)."""
         P = self.P
         m = S.shape[1]
         G = dict(self.constant) if m == P else \
@@ -350,6 +353,10 @@ class SensitivityChain:
                 D = np.zeros((term.n_rows, P))
             if m != P:
                 D = np.concatenate((D, np.zeros((term.n_rows, m - P))), axis=1)
+            if time is not None and term.n_rows:
+                blk = step.block
+                D += np.outer(_time_derivative(lambda tt: _call(blk, tt, xs, u, 1)[0], t,
+                                               time[1], time[2]), time[0])
             if sl is not None:
                 D += J[:, term.x] @ S[sl]
             if term.n_out:
@@ -367,8 +374,8 @@ class SensitivityChain:
                 kept.append((term, D, J))
         return G, kept
 
-    def stage(self, t, x, S, sig) -> tuple:
-        G, kept = self.outputs(t, x, S, sig)
+    def stage(self, t, x, S, sig, time=None) -> tuple:
+        G, kept = self.outputs(t, x, S, sig, time)
         K = np.zeros((self.d.n_states, S.shape[1]))
         for term, D, J in kept:           # after every output, as in a stage
             dx = term.dx
@@ -535,17 +542,6 @@ class _StateEvents:
         xs = x[:, st.state] if st.state is not None else x[:, 0:0]
         return xs, tuple(self.sig[i] for i in st.inputs)
 
-    def _time_rows(self, st, fn, ts, x, lo, hi) -> np.ndarray:
-        """d fn(t, its state, its inputs at (t, x)) / dt at fixed x (the inputs' explicit
-        time dependence included); the signals at ts restored."""
-        def at(t):
-            self.outputs(t, x)
-            xs, u = self._local(st, x)
-            return np.asarray(fn(t, xs, u), dtype=float).reshape(-1)
-        got = _time_derivative(at, ts, lo, hi)
-        self.outputs(ts, x)
-        return got
-
     def act(self, which: dict, ts, dts, x, S, G, te_p, lo, hi) -> np.ndarray:
         """The blocks' ``crossed`` at ts (just past the crossing: signals and G, their
         sensitivities, at (ts, x)), x changed in place; returns the sensitivity after:
@@ -571,9 +567,9 @@ class _StateEvents:
             dnew = Rx @ S[st.state] + self._parameter(blk, lambda b: reset(xs, u, b), n)
             for part, src in zip(Ru, st.inputs):
                 dnew = dnew + part @ G[src]
-            if dts:
-                Rt = self._time_rows(st, lambda t, xx, uu: reset(xx, uu, t=t), ts, x, lo, hi)
-                dnew = dnew + np.outer(Rt, te_p)
+            if dts:                      # its own explicit time (G holds the inputs')
+                Rt = _time_derivative(lambda t: reset(xs, u, t=t).reshape(-1), ts, lo, hi)
+                dnew = dnew + np.outer(Rt, dts * te_p)
             news.append((st, np.broadcast_to(new, (1, n)), dnew))
         for st, new, dnew in news:
             x[:, st.state] = new
@@ -590,7 +586,12 @@ class _StateEvents:
         ts = min(te, hi)
         dts = 1.0 if te < hi else 0.0
         self.outputs(ts, x)
-        Gs, _ = chain.outputs(ts, x[0], np.concatenate((S_m, V[:, None]), axis=1), self.sig)
+        # columns: the parameters (tau fixed), d/d tau, d/d t at fixed x (the signals'
+        # explicit time dependence, through the chain rule)
+        cols = np.concatenate((S_m, V[:, None], np.zeros((len(V), 1))), axis=1)
+        seed = np.zeros(P + 2)
+        seed[P + 1] = dts
+        Gs, _ = chain.outputs(ts, x[0], cols, self.sig, (seed, lo, hi))
         best = None
         for k, w in which.items():
             st = self.steps[k]
@@ -600,12 +601,13 @@ class _StateEvents:
             g = np.asarray(blk.zero_crossings(ts, xs, u), dtype=float).reshape(-1)
             Jx, Ju = _difference_jacobian(lambda xx, uu: blk.zero_crossings(ts, xx, uu),
                                           xs, u, n)
-            rows = Jx @ (np.concatenate((S_m, V[:, None]), axis=1)[st.state]) \
-                if st.state is not None else np.zeros((n, P + 1))
+            rows = Jx @ cols[st.state] if st.state is not None else np.zeros((n, P + 2))
             for part, src in zip(Ju, st.inputs):
                 rows = rows + part @ Gs[src]
             gp = self._parameter(blk, lambda b: b.zero_crossings(ts, xs, u), n)
-            gt = dts * self._time_rows(st, blk.zero_crossings, ts, x, lo, hi)
+            gt = rows[:, P + 1] + dts * _time_derivative(
+                lambda t: np.asarray(blk.zero_crossings(t, xs, u), dtype=float).reshape(-1),
+                ts, lo, hi)
             num = rows[:, :P] + gp + np.outer(gt, s_p)
             den = rows[:, P] + gt
             for j in np.flatnonzero(w[0]):
@@ -619,7 +621,8 @@ class _StateEvents:
         tau_p = -best[1] / best[2]
         te_p = s_p + tau_p
         S = S_m + np.outer(V, tau_p)
-        G = {idx: g[:, :P] + np.outer(g[:, P], tau_p) for idx, g in Gs.items()}
+        G = {idx: g[:, :P] + np.outer(g[:, P], tau_p) + np.outer(g[:, P + 1], te_p)
+             for idx, g in Gs.items()}
         for e_i, e in enumerate(self.events):
             if e.time == te:
                 self.dtime[e_i] = te_p
@@ -696,7 +699,7 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int, events=())
         """One (sub-)step of size hh from (a, x); with ``tangents`` also the derivatives
         of its end with respect to its start time a and its size hh (at fixed x_a),
         returned as (N, 2): the stages' times move with them (unless clamped), so the
-        right-hand side's explicit time derivative enters (``_time_derivative``)."""
+        blocks' explicit time derivatives enter (``SensitivityChain.outputs``' time)."""
         nonlocal S
         ks, Ks = [], []
         Sx = np.concatenate((S, np.zeros((N, 2))), axis=1) if tangents else S
@@ -716,18 +719,14 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int, events=())
             dx = np.empty((1, N))
             with np.errstate(all="ignore"):
                 f(ti, xi, dx)
-            G, K = chain.stage(ti, xi[0], Si, sig)
+            time = None
+            if tangents and lo <= raw <= hi:      # (a clamped stage time does not move)
+                seed = np.zeros(P + 2)
+                seed[P], seed[P + 1] = 1.0, tab.c[i]
+                time = (seed, lo, hi)
+            G, K = chain.stage(ti, xi[0], Si, sig, time)
             if i == 0 and recorded:
                 record(G)
-            if tangents and lo <= raw <= hi:
-
-                def rhs(t, xi=xi):
-                    v = np.empty((1, N))
-                    f(t, xi, v)
-                    return v[0]
-                ft = _time_derivative(rhs, ti, lo, hi)
-                K[:, P] += ft
-                K[:, P + 1] += tab.c[i] * ft
             ks.append(dx)
             Ks.append(K)
         for j, bj in enumerate(tab.b):
