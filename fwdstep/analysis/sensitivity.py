@@ -228,7 +228,7 @@ class _BlockTerm:
     def __init__(self, step, dp: dict, P: int):
         blk = step.block
         self.step = step
-        names = [name for (bname, name) in dp if bname == blk.name]
+        names = _read_by_rows(blk, [name for (bname, name) in dp if bname == blk.name])
         self.jac = BlockJacobian(blk)
         self.Bp = None            # exact p columns: (size of those columns, P)
         self.probes = None        # moved copies of the block: [column][offset]
@@ -297,6 +297,19 @@ class _BlockTerm:
                 f = [_call(b, t, x, u, 1)[0] for b in moved]
             out[:, c] = _richardson(f, h)
         return out
+
+
+def _read_by_rows(blk, names: list) -> list:
+    """Of the moved p arrays ``names``, those the block's outputs and derivative can read:
+    all of them, unless both are its declared kernels (``set_kernels``), which read their
+    ``params`` alone (a Saturation's ``interval`` feeds its guards only: left in, it would
+    keep the block from being traced, and differences in its limits straddle the kink)."""
+    from fwdstep.core.block import Block
+    k = getattr(blk, "kernels", None)
+    if k is None or type(blk).output is not Block.output or \
+            type(blk).derivative is not Block.derivative:
+        return names
+    return [n for n in names if n in k.params]
 
 
 def _probes(blk, dp: dict, P: int):
