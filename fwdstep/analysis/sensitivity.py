@@ -796,7 +796,9 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int, events=())
                 S, s_p = located.crossing(te, lo, hi, x, S_m, V[:, 1], s_p, chain)
                 s = te
                 recorded = False
-                if not s < b:
+                if not s < b:            # the rest has size 0 (the crossing at b): its
+                    V = step(s, 0.0, lo, hi, False, tangents=True)   # tangents all the same
+                    S = S + np.outer(V[:, 0] - V[:, 1], s_p)
                     return
             else:
                 moving = bool(s_p.any())

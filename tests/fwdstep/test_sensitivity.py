@@ -323,3 +323,19 @@ def test_a_stop_leaves_nan_with_a_note(tmp_path):
     before = r.t < 1 / 2.1
     assert np.abs(s[before] - r.t[before]).max() < 1e-12
     assert any("block 'stop' (Stop) stops the run there" in n for n in r.notes)
+
+
+def test_a_chattering_block_leaves_nan_with_a_note(tmp_path):
+    """x' = -a sign(x) (a Switch) slides on x = 0 from t = x0/a: the crossings recur,
+    are no longer located (chattering), and are not differentiated: NaN from there with
+    a note; before, dx/dx0 = 1 and dx/da = -t."""
+    text = SWITCHED.replace("{a: 2.1, b: 1.0}", "{a: 1.0, x0: 0.5}")
+    text = text.replace("initial: 0,", "initial: x0,").replace("value: b}", "value: -a}")
+    text = text.replace("threshold: 1.0", "threshold: 0.0").replace("t_final: 2", "t_final: 1")
+    r = fwdstep.simulate(fwdstep.load_diagram(_write(tmp_path, text)), sensitivities=["x0", "a"])
+    chatter = next(e.time for e in r.events if e.kind == "chattering")
+    assert np.isnan(r.sensitivity("x.y", "x0")[r.t >= chatter]).all()
+    before = r.t < 0.5
+    assert np.abs(r.sensitivity("x.y", "x0")[before] - 1).max() < 1e-12
+    assert np.abs(r.sensitivity("x.y", "a")[before] + r.t[before]).max() < 1e-12
+    assert any("block 'sw' chatters there" in n for n in r.notes)
