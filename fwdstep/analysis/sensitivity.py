@@ -46,17 +46,31 @@ instants) are differentiated as they are run (sub-steps, clamped stage times); a
 update x+ = update(x-, u) at an event is differentiated with the Richardson differences of
 ``Block.update`` in its state and inputs, the inputs' sensitivities coming from the chain
 rule at the event (levels in order, as ``fwdstep.run.events.apply_updates``).  Event times
-are fixed (declared, parameter-independent: a parameter that moves one is refused).  Not
-handled: state events (crossing times that depend on the state: the sensitivities from the
-first located crossing on are NaN, with a note in ``Result.notes``), discrete blocks in an
+are fixed (declared, parameter-independent: a parameter that moves one is refused).
+
+State events (zero crossings located by the run, ``fwdstep.run.crossings``) are replayed
+from ``Result.events`` and differentiated as run: the sub-step of size tau to the crossing,
+whose time follows from the guard that located it, g(s + tau, Phi_tau(x_s; p); p) = 0, so
+dtau/dp = -(g_x (dPhi/dx S_s + dPhi/dp + dPhi/ds ds/dp) + g_p + g_t ds/dp) / (g_x dPhi/dtau
++ g_t), with the step map's tangents in its size and start time integrated as two extra
+columns (a block's explicit time derivative by differences in t at fixed state and inputs,
+carried by the chain rule); the state there moves by dPhi/dtau dtau/dp; the blocks'
+``crossed`` (a reset x+ = R(t, x-, u)) is differentiated by Richardson differences in its
+state, inputs, ``p`` and t; the rest of the step starts at the moving crossing.  The run's
+tau is within ``CROSSING_TOL`` (1e-13 s) of the root, just past it: the exact root's map is
+differentiated.  ``event_time_sensitivity(r, k, PARAM)`` gives d(time of r.events[k])/dp.
+Not differentiated (NaN from there on, with a note in ``Result.notes``): a chattering block,
+a Stop block's crossing, a guard touching zero without crossing; also discrete blocks in an
 algebraic loop at an instant (fixed-point iteration), ``solve_ivp`` solvers, batches.
+docs/design.md has the procedure and its measured accuracy.
 
 Backends: with ``backend="compiled"`` (or ``simulation.backend: compiled``) the variational
 equations are compiled into the stage and integrated by the compiled loop
 (``fwdstep.analysis.compiled_sensitivity``: the same derivative, 1e-12 apart); diagrams it
 cannot take (discrete updates, zero crossings, stages that do not trace) run here, on the
-NumPy path, with a one-line note.  ``fwdstep.simulate(d, sensitivities=[...])`` calls
-``sensitivities`` (the run layer loads this module by name).
+NumPy path (crossings differentiated as above), with a one-line note.
+``fwdstep.simulate(d, sensitivities=[...])`` calls ``sensitivities`` (the run layer loads
+this module by name).
 """
 from __future__ import annotations
 
@@ -228,7 +242,7 @@ class _BlockTerm:
     def __init__(self, step, dp: dict, P: int):
         blk = step.block
         self.step = step
-        names = [name for (bname, name) in dp if bname == blk.name]
+        names = _read_by_rows(blk, [name for (bname, name) in dp if bname == blk.name])
         self.jac = BlockJacobian(blk)
         self.Bp = None            # exact p columns: (size of those columns, P)
         self.probes = None        # moved copies of the block: [column][offset]
@@ -299,6 +313,19 @@ class _BlockTerm:
         return out
 
 
+def _read_by_rows(blk, names: list) -> list:
+    """Of the moved p arrays ``names``, those the block's outputs and derivative can read:
+    all of them, unless both are its declared kernels (``set_kernels``), which read their
+    ``params`` alone (a Saturation's ``interval`` feeds its guards only: left in, it would
+    keep the block from being traced, and differences in its limits straddle the kink)."""
+    from fwdstep.core.block import Block
+    k = getattr(blk, "kernels", None)
+    if k is None or type(blk).output is not Block.output or \
+            type(blk).derivative is not Block.derivative:
+        return names
+    return [n for n in names if n in k.params]
+
+
 def _probes(blk, dp: dict, P: int):
     """For each column c: the block with its p arrays moved by off * h_c * dp[:, c] (the
     offsets of the Richardson difference), and h_c; None where nothing moves."""
@@ -321,17 +348,24 @@ class SensitivityChain:
     every signal's sensitivity (signal -> (size, P)) and K = A S + B, (N, P)."""
 
     def __init__(self, d, dp: dict, P: int):
-        self.d, self.P = d, P
+        self.d, self.P, self.dp = d, P, dp
         self.terms = [_BlockTerm(step, dp, P) for step in d.schedule]
         self.constant = {idx: np.zeros((int(np.prod(d.signal_shapes[idx], dtype=np.int64)),
                                         P)) for idx in d.constant_signals}
 
-    def outputs(self, t, x, S, sig) -> tuple:
+    def outputs(self, t, x, S, sig, time=None) -> tuple:
         """(signal sensitivities, [(block, its rows so far, J)]) at (t, x): the outputs'
-        rows complete, the state derivative rows without the inputs' terms."""
-        G = dict(self.constant)
-        kept = []
+        rows complete, the state derivative rows without the inputs' terms.  S may have
+        more columns than the P parameters': those are directions of the state alone (no
+        parameter term; a crossing's tangents).  ``time``: (seed, lo, hi): column c also
+        moves t by seed[c] (each block's explicit time derivative at fixed state and
+        inputs, ``_time_derivative`` within [lo, hi], carried by the chain rule: a kink
+        of a block in its inputs is never straddled)."""
         P = self.P
+        m = S.shape[1]
+        G = dict(self.constant) if m == P else \
+            {idx: np.zeros((g.shape[0], m)) for idx, g in self.constant.items()}
+        kept = []
         for term in self.terms:
             step = term.step
             sl = step.state
@@ -344,6 +378,12 @@ class SensitivityChain:
                 D = term.parameter_rows(t, xs, u, P)
             else:
                 D = np.zeros((term.n_rows, P))
+            if m != P:
+                D = np.concatenate((D, np.zeros((term.n_rows, m - P))), axis=1)
+            if time is not None and term.n_rows:
+                blk = step.block
+                D += np.outer(_time_derivative(lambda tt: _call(blk, tt, xs, u, 1)[0], t,
+                                               time[1], time[2]), time[0])
             if sl is not None:
                 D += J[:, term.x] @ S[sl]
             if term.n_out:
@@ -361,9 +401,9 @@ class SensitivityChain:
                 kept.append((term, D, J))
         return G, kept
 
-    def stage(self, t, x, S, sig) -> tuple:
-        G, kept = self.outputs(t, x, S, sig)
-        K = np.zeros((self.d.n_states, self.P))
+    def stage(self, t, x, S, sig, time=None) -> tuple:
+        G, kept = self.outputs(t, x, S, sig, time)
+        K = np.zeros((self.d.n_states, S.shape[1]))
         for term, D, J in kept:           # after every output, as in a stage
             dx = term.dx
             k = D[dx]
@@ -377,8 +417,14 @@ def _update_jacobian(step, t, x, u) -> tuple:
     """Richardson differences of ``block.update`` in its state and each input:
     (d x+/d x, [d x+/d u_j])."""
     blk = step.block
-    n = blk.n_states
+    return _difference_jacobian(lambda xs, us: blk.update(t, xs, us), x, u, blk.n_states)
+
+
+def _difference_jacobian(fn, x, u, n: int) -> tuple:
+    """Richardson differences of ``fn(x, u) -> (1, n)`` (a block's update, guards or
+    crossed) in its state x (1, n_x) and each input: (d fn/d x, [d fn/d u_j])."""
     shapes = [np.shape(a)[1:] for a in u]
+    n_x = x.shape[1]
     base = np.concatenate([x.reshape(-1)] + [np.asarray(a, float).reshape(-1) for a in u])
     C = base.size
     out = np.zeros((n, C))
@@ -388,49 +434,269 @@ def _update_jacobian(step, t, x, u) -> tuple:
         for off in _OFFSETS:
             v = base.copy()
             v[c] += off * h
-            xs, us, k = v[:n].reshape(1, n), [], n
+            xs, us, k = v[:n_x].reshape(1, n_x), [], n_x
             for s in shapes:
                 size = int(np.prod(s, dtype=np.int64))
                 us.append(v[k:k + size].reshape((1,) + s))
                 k += size
             with np.errstate(all="ignore"):
-                f.append(np.broadcast_to(blk.update(t, xs, tuple(us)), (1, n))[0])
+                f.append(np.broadcast_to(np.asarray(fn(xs, tuple(us)), dtype=float),
+                                         (1, n))[0])
         out[:, c] = _richardson(f, h)
-    parts, k = [], n
+    parts, k = [], n_x
     for s in shapes:
         size = int(np.prod(s, dtype=np.int64))
         parts.append(out[:, k:k + size])
         k += size
-    return out[:, :n], parts
+    return out[:, :n_x], parts
+
+
+# ---------------------------------------------------------------------- state events
+#: the step of the central differences in time (at fixed state) of a stage's right-hand
+#: side, a guard or a reset, times max(1, |t|)
+TIME_STEP = 1e-6
+
+
+def _time_derivative(fn, t: float, lo: float, hi: float) -> np.ndarray:
+    """d fn(t)/dt: Richardson central differences of step ``TIME_STEP``, or second-order
+    one-sided ones into [lo, hi] where t is closer than that to a declared discontinuity
+    (no difference straddles one)."""
+    h = TIME_STEP * max(1.0, abs(t))
+    with np.errstate(all="ignore"):
+        if t - h >= lo and t + h <= hi:
+            return _richardson([np.asarray(fn(t + off * h), dtype=float)
+                                for off in _OFFSETS], h)
+        up = hi - t >= t - lo
+        h = min(h, 0.5 * ((hi - t) if up else (t - lo)))
+        if not h > 0:
+            return 0.0 * np.asarray(fn(t), dtype=float)
+        sign = 1.0 if up else -1.0
+        f0, f1, f2 = (np.asarray(fn(t + sign * k * h), dtype=float) for k in (0, 1, 2))
+        return sign * (-3.0 * f0 + 4.0 * f1 - f2) / (2.0 * h)
+
+
+class _NotDifferentiated(Exception):
+    """A state event whose motion is not differentiated (chattering, a Stop, a crossing
+    the replay does not meet): the sensitivities are NaN from ``time`` on."""
+
+    def __init__(self, time: float, reason: str):
+        super().__init__(reason)
+        self.time, self.reason = time, reason
+
+
+class _StateEvents:
+    """The run's located crossings (``Result.events``, variant 0) replayed on the
+    sensitivities' own steps and differentiated (module docstring): the crossing blocks,
+    the event times in order, d(event time)/d columns (``dtime``)."""
+
+    def __init__(self, d, events, dp: dict, P: int, outputs, sig):
+        from fwdstep.run.crossings import crossing_steps
+        self.d, self.dp, self.P = d, dp, P
+        self.outputs, self.sig = outputs, sig
+        self.steps = crossing_steps(d)
+        self.index = {st.block.name: k for k, st in enumerate(self.steps)}
+        self.events = [e for e in events if e.variant == 0]
+        self.times = sorted({e.time for e in self.events})
+        self.k = 0
+        self.dtime = np.full((len(self.events), P), np.nan)
+        self.probes = {}
+
+    def next_time(self) -> float:
+        return self.times[self.k] if self.k < len(self.times) else math.inf
+
+    def _which(self, te: float) -> dict:
+        """The events at te -> {crossing step index: (1, n_crossings) bool} (the guards
+        the run acted on), ``_NotDifferentiated`` for what is not differentiated; the next
+        event time becomes the current one."""
+        which, _ = self.acted(te)
+        self.k += 1
+        return which
+
+    def acted(self, te: float) -> tuple:
+        """({crossing step index: (1, n_crossings) bool}, {the same: (1, n_crossings) bool,
+        True where the guard rose}) for the run's events at te."""
+        which, rising = {}, {}
+        for e in self.events:
+            if e.time != te:
+                continue
+            k = self.index.get(e.block)
+            blk = self.steps[k].block if k is not None else None
+            if blk is None or e.kind == "chattering":
+                raise _NotDifferentiated(te, f"block '{e.block}' chatters there (its "
+                                             "crossings are no longer located)")
+            if blk.stops_run:
+                raise _NotDifferentiated(te, f"block '{e.block}' ({blk.type_name}) stops the "
+                                             "run there at a crossing")
+            label = e.kind.rsplit(" ", 1)[0]
+            name, _, elem = label.partition("[")
+            col = (blk.crossing_names.index(name) * blk.crossing_size
+                   + (int(elem.rstrip("]")) if elem else 0))
+            which.setdefault(k, np.zeros((1, blk.n_crossings), dtype=bool))[0, col] = True
+            rising.setdefault(k, np.zeros((1, blk.n_crossings), dtype=bool))[0, col] = \
+                e.kind.endswith("rising")
+        return which, rising
+
+    def past(self, te: float, hi: float, x) -> bool:
+        """Whether every guard the run acted on at te has its new sign at (min(te, hi), x)
+        (the run's state just past the root: ``crossed`` reads those signs)."""
+        which, rising = self.acted(te)
+        ts = min(te, hi)
+        self.outputs(ts, x)
+        for k, w in which.items():
+            st = self.steps[k]
+            xs, u = self._local(st, x)
+            g = np.asarray(st.block.zero_crossings(ts, xs, u), dtype=float).reshape(1, -1)
+            if ((g >= 0) != rising[k])[w].any():
+                return False
+        return True
+
+    def _parameter(self, blk, fn, n: int) -> np.ndarray:
+        """d fn(block) / d columns through the block's p arrays, (n, P) (Richardson over
+        moved copies of the block, as for the blocks' right-hand sides)."""
+        got = self.probes.get(blk.name)
+        if got is None:
+            names = {nm: g for (bn, nm), g in self.dp.items() if bn == blk.name}
+            got = self.probes[blk.name] = _probes(blk, names, self.P) if names else ()
+        out = np.zeros((n, self.P))
+        for c, (moved, h) in enumerate(zip(*got) if got else ()):
+            if moved is not None:
+                with np.errstate(all="ignore"):
+                    out[:, c] = _richardson([np.asarray(fn(b), dtype=float).reshape(-1)
+                                             for b in moved], h)
+        return out
+
+    def _local(self, st, x):
+        xs = x[:, st.state] if st.state is not None else x[:, 0:0]
+        return xs, tuple(self.sig[i] for i in st.inputs)
+
+    def act(self, which: dict, ts, dts, x, S, G, te_p, lo, hi) -> np.ndarray:
+        """The blocks' ``crossed`` at ts (just past the crossing: signals and G, their
+        sensitivities, at (ts, x)), x changed in place; returns the sensitivity after:
+        x+ = R(t, x-, u) differentiated in x-, u (their sensitivities), p and t (te_p the
+        event time's, dts = d ts / d te)."""
+        S = S.copy()
+        news = []
+        for k, w in which.items():
+            st = self.steps[k]
+            if st.state is None:
+                continue
+            blk = st.block
+            xs, u = self._local(st, x)
+            new = blk.crossed(ts, xs, u, w)
+            if new is None:
+                continue
+            n = blk.n_states
+
+            def reset(xx, uu, b=blk, t=ts, w=w):
+                got = b.crossed(t, xx, uu, w)
+                return xx if got is None else got
+            Rx, Ru = _difference_jacobian(reset, xs, u, n)
+            dnew = Rx @ S[st.state] + self._parameter(blk, lambda b: reset(xs, u, b), n)
+            for part, src in zip(Ru, st.inputs):
+                dnew = dnew + part @ G[src]
+            if dts:                      # its own explicit time (G holds the inputs')
+                Rt = _time_derivative(lambda t: reset(xs, u, t=t).reshape(-1), ts, lo, hi)
+                dnew = dnew + np.outer(Rt, dts * te_p)
+            news.append((st, np.broadcast_to(new, (1, n)), dnew))
+        for st, new, dnew in news:
+            x[:, st.state] = new
+            S[st.state] = dnew
+        return S
+
+    def crossing(self, te, lo, hi, x, S_m, V, s_p, chain):
+        """Just past the located crossing at te, x = x- the sub-step of size tau from s
+        (its sensitivity with tau fixed ``S_m``, d x-/d tau ``V``, d s/d columns ``s_p``):
+        tau's derivative from the guard that located it, g(s + tau, x-(tau)) = 0, then the
+        blocks' resets.  Returns (S after the crossing, d te / d columns); x is x+."""
+        which = self._which(te)
+        P = self.P
+        ts = min(te, hi)
+        dts = 1.0 if te < hi else 0.0
+        self.outputs(ts, x)
+        # columns: the parameters (tau fixed), d/d tau, d/d t at fixed x (the signals'
+        # explicit time dependence, through the chain rule)
+        cols = np.concatenate((S_m, V[:, None], np.zeros((len(V), 1))), axis=1)
+        seed = np.zeros(P + 2)
+        seed[P + 1] = dts
+        Gs, _ = chain.outputs(ts, x[0], cols, self.sig, (seed, lo, hi))
+        best = None
+        for k, w in which.items():
+            st = self.steps[k]
+            blk = st.block
+            xs, u = self._local(st, x)
+            n = blk.n_crossings
+            g = np.asarray(blk.zero_crossings(ts, xs, u), dtype=float).reshape(-1)
+            Jx, Ju = _difference_jacobian(lambda xx, uu: blk.zero_crossings(ts, xx, uu),
+                                          xs, u, n)
+            rows = Jx @ cols[st.state] if st.state is not None else np.zeros((n, P + 2))
+            for part, src in zip(Ju, st.inputs):
+                rows = rows + part @ Gs[src]
+            gp = self._parameter(blk, lambda b: b.zero_crossings(ts, xs, u), n)
+            gt = rows[:, P + 1] + dts * _time_derivative(
+                lambda t: np.asarray(blk.zero_crossings(t, xs, u), dtype=float).reshape(-1),
+                ts, lo, hi)
+            num = rows[:, :P] + gp + np.outer(gt, s_p)
+            den = rows[:, P] + gt
+            for j in np.flatnonzero(w[0]):
+                back = g[j] / den[j] if den[j] != 0 else -math.inf
+                if best is None or back > best[0]:    # the earliest root of those acted on
+                    best = (back, num[j], den[j], blk.name)
+        if best is None or not (np.isfinite(best[2]) and best[2] != 0):
+            raise _NotDifferentiated(te, f"block '{best[3] if best else '?'}': its guard "
+                                         "touches zero without crossing (tangent), so the "
+                                         "crossing time has no derivative")
+        tau_p = -best[1] / best[2]
+        te_p = s_p + tau_p
+        S = S_m + np.outer(V, tau_p)
+        G = {idx: g[:, :P] + np.outer(g[:, P], tau_p) + np.outer(g[:, P + 1], te_p)
+             for idx, g in Gs.items()}
+        for e_i, e in enumerate(self.events):
+            if e.time == te:
+                self.dtime[e_i] = te_p
+        return self.act(which, ts, dts, x, S, G, te_p, lo, hi), te_p
+
+    def jump(self, ts, lo, hi, x, S, chain):
+        """Guards that jumped at a declared time ts (a Step, a discrete update): the resets
+        at a time that does not move (nothing located)."""
+        which = self._which(ts)
+        self.outputs(ts, x)
+        G, _ = chain.outputs(ts, x[0], S, self.sig)
+        for e_i, e in enumerate(self.events):
+            if e.time == ts:
+                self.dtime[e_i] = 0.0
+        return self.act(which, ts, 0.0, x, S, G, np.zeros(self.P), lo, hi)
 
 
 # ---------------------------------------------------------------------- the run
-def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
+def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int, events=()) -> tuple:
     """The run's steps with the sensitivities alongside (fwdstep.run.simulate's procedure:
-    the same stages, event sub-steps, updates and record times); returns signal ->
-    (rows, size, P) for every logged signal."""
+    the same stages, event sub-steps, updates, record times and the run's located
+    crossings, ``events``); returns (signal -> (rows, size, P) for every logged signal,
+    d event time / d columns (len(events), P), the time from which nothing is computed and
+    why, or None)."""
     from fwdstep.run.evaluate import _make_evaluator, initial_state
     from fwdstep.run.events import plan_events
     cfg = d.spec.simulation
     tab = TABLEAUX[cfg.solver]
     h, n_steps, every = cfg.step, cfg.n_steps, cfg.log_every
-    events = plan_events(d, h, n_steps)
-    special = events.steps if events is not None else {}
+    events_plan = plan_events(d, h, n_steps)
+    special = events_plan.steps if events_plan is not None else {}
     f, outputs, sig = _make_evaluator(d)
     N, P = d.n_states, chain.P
-    x = np.array(initial_state(d, event=events.start if events is not None else None),
-                 dtype=float)
+    x = np.array(initial_state(d, event=events_plan.start if events_plan is not None
+                               else None), dtype=float)
     S = S0.copy()
     logged = [(name, d.signal_index[name]) for name in d.logged]
     out = {name: np.full((rows, int(np.prod(d.signal_shapes[idx], dtype=np.int64)), P), np.nan)
            for name, idx in logged}
     row = 0
+    located = _StateEvents(d, events, chain.dp, P, outputs, sig) if events else None
 
     def record(G):
         nonlocal row
         if row < rows:
             for name, idx in logged:
-                out[name][row] = G[idx]
+                out[name][row] = G[idx][:, :P]
         row += 1
 
     def event(ev, t):
@@ -456,23 +722,36 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
                 x[:, st.state] = v
                 S[st.state] = g
 
-    def step(a, hh, lo, hi, recorded):
+    def step(a, hh, lo, hi, recorded, tangents=False):
+        """One (sub-)step of size hh from (a, x); with ``tangents`` also the derivatives
+        of its end with respect to its start time a and its size hh (at fixed x_a),
+        returned as (N, 2): the stages' times move with them (unless clamped), so the
+        blocks' explicit time derivatives enter (``SensitivityChain.outputs``' time)."""
         nonlocal S
         ks, Ks = [], []
+        Sx = np.concatenate((S, np.zeros((N, 2))), axis=1) if tangents else S
         for i in range(tab.stages):
+            raw = a + tab.c[i] * hh
             if i == 0:
-                xi, Si, ti = x, S, max(a, lo)
+                xi, Si, ti = x, Sx, max(a, lo)
             else:
-                xi, Si = x.copy(), S.copy()
+                xi, Si = x.copy(), Sx.copy()
                 for j, aij in enumerate(tab.a[i]):
                     if aij != 0.0:
                         xi += (hh * aij) * ks[j]
                         Si += (hh * aij) * Ks[j]
-                ti = min(max(a + tab.c[i] * hh, lo), hi)
+                        if tangents:
+                            Si[:, P + 1] += aij * ks[j][0]
+                ti = min(max(raw, lo), hi)
             dx = np.empty((1, N))
             with np.errstate(all="ignore"):
                 f(ti, xi, dx)
-            G, K = chain.stage(ti, xi[0], Si, sig)
+            time = None
+            if tangents and lo <= raw <= hi:      # (a clamped stage time does not move)
+                seed = np.zeros(P + 2)
+                seed[P], seed[P + 1] = 1.0, tab.c[i]
+                time = (seed, lo, hi)
+            G, K = chain.stage(ti, xi[0], Si, sig, time)
             if i == 0 and recorded:
                 record(G)
             ks.append(dx)
@@ -480,32 +759,89 @@ def _integrate(d, chain: SensitivityChain, S0: np.ndarray, rows: int) -> dict:
         for j, bj in enumerate(tab.b):
             if bj != 0.0:
                 x[...] += (hh * bj) * ks[j]
-                S = S + (hh * bj) * Ks[j]
+                Sx = Sx + (hh * bj) * Ks[j]
+                if tangents:
+                    Sx[:, P + 1] += bj * ks[j][0]
+        S = Sx[:, :P]
+        return Sx[:, P:] if tangents else None
 
-    with np.errstate(all="ignore"):   # S may overflow where x does not: a note says so
-        for n in range(n_steps):
-            t = n * h
-            if not np.all(np.isfinite(x)):
-                break
-            if n in special:
-                for i, sub in enumerate(special[n]):
-                    if sub.event is not None:
-                        event(sub.event, max(sub.a, sub.lo))
-                    step(sub.a, sub.b - sub.a, sub.lo, sub.hi, i == 0 and n % every == 0)
+    def unit(a, b, lo, hi, recorded):
+        """A (sub-)step [a, b] in which the run located crossings (or at whose start
+        guards jumped): sub-steps to each crossing, differentiated (module docstring)."""
+        nonlocal S
+        if located.next_time() == max(a, lo):
+            S = located.jump(max(a, lo), lo, hi, x, S, chain)
+        s, s_p = a, np.zeros(P)
+        while True:
+            te = located.next_time()
+            if te <= s:
+                raise _NotDifferentiated(te, "the sensitivities' replay of the run does not "
+                                             "meet its crossing there")
+            if te <= b:
+                # the step to the run's crossing time; the run's own tau (te = s + tau
+                # rounded) may be an ulp longer: a guard that is not yet past its root
+                # here (a few 1e-16) is taken a few ulps further, as the run found it
+                x_s, S_s, tau = x.copy(), S.copy(), te - s
+                for more in range(12):
+                    V = step(s, tau, lo, hi, recorded, tangents=True)
+                    recorded = False
+                    if located.past(te, hi, x):
+                        break
+                    x[...], S = x_s, S_s.copy()
+                    tau += 2.0 ** more * math.ulp(te)
+                else:
+                    raise _NotDifferentiated(te, "the sensitivities' replay of the run does "
+                                                 "not meet its crossing there")
+                S_m = S + np.outer(V[:, 0], s_p)
+                S, s_p = located.crossing(te, lo, hi, x, S_m, V[:, 1], s_p, chain)
+                s = te
+                recorded = False
+                if not s < b:            # the rest has size 0 (the crossing at b): its
+                    V = step(s, 0.0, lo, hi, False, tangents=True)   # tangents all the same
+                    S = S + np.outer(V[:, 0] - V[:, 1], s_p)
+                    return
             else:
-                step(t, h, -math.inf, math.inf, n % every == 0)
-        else:
-            t = n_steps * h
-            end = events.final if events is not None else None
-            ts = t
-            if end is not None:
-                ts = max(t, end.hi)
-                if end.updates:
-                    event(end, ts)
-            outputs(ts, x)
-            G, _ = chain.outputs(ts, x[0], S, sig)
-            record(G)
-    return out
+                moving = bool(s_p.any())
+                V = step(s, b - s, lo, hi, recorded, tangents=moving)
+                if moving:               # starts at s (moving), ends at b (fixed)
+                    S = S + np.outer(V[:, 0] - V[:, 1], s_p)
+                return
+
+    stopped = None
+    with np.errstate(all="ignore"):   # S may overflow where x does not: a note says so
+        try:
+            for n in range(n_steps):
+                t = n * h
+                if not np.all(np.isfinite(x)):
+                    break
+                units = ([(sub.a, sub.b, sub.lo, sub.hi, sub.event) for sub in special[n]]
+                         if n in special else [(t, (n + 1) * h, -math.inf, math.inf, None)])
+                for i, (a, b, lo, hi, ev) in enumerate(units):
+                    if ev is not None:
+                        event(ev, max(a, lo))
+                    rec = i == 0 and n % every == 0
+                    if located is not None and located.next_time() <= b:
+                        unit(a, b, lo, hi, rec)
+                    else:
+                        step(a, b - a, lo, hi, rec)
+            else:
+                t = n_steps * h
+                end = events_plan.final if events_plan is not None else None
+                ts = t
+                if end is not None:
+                    ts = max(t, end.hi)
+                    if end.updates:
+                        event(end, ts)
+                if located is not None and located.next_time() <= ts:
+                    raise _NotDifferentiated(located.next_time(), "the sensitivities' replay "
+                                             "of the run does not meet its crossing there")
+                outputs(ts, x)
+                G, _ = chain.outputs(ts, x[0], S, sig)
+                record(G)
+        except _NotDifferentiated as exc:
+            stopped = (exc.time, exc.reason)
+    dtime = located.dtime if located is not None else np.zeros((0, P))
+    return out, dtime, stopped
 
 
 def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
@@ -556,39 +892,48 @@ def sensitivities(d, params, *, result=None, x0_sensitivity=None, backend=None,
         r.notes.append(note)
     rows = len(r.t)
     chain = SensitivityChain(d, loaded.p, P)
-    signals = _integrate(d, chain, S0, cfg.n_steps // cfg.log_every + 2)
-    return _attach(r, {name: arr[:rows] for name, arr in signals.items()}, parameters)
+    signals, dtime, stopped = _integrate(d, chain, S0, cfg.n_steps // cfg.log_every + 2,
+                                         r.events)
+    return _attach(r, {name: arr[:rows] for name, arr in signals.items()}, parameters,
+                   dtime, stopped)
 
 
-def _attach(r, signals: dict, parameters: list):
-    """The sensitivities onto the Result, with a note where they are not finite (the
-    variational equations diverged: x is checked against the bound, S is not) and NaN from
-    a zero crossing on (``_after_crossings``)."""
-    r.sensitivity_data = {"signals": signals, "parameters": parameters}
+def _attach(r, signals: dict, parameters: list, dtime=None, stopped=None):
+    """The sensitivities onto the Result (``r.sensitivity_data``: "signals", "parameters"
+    and "events", d event time / d columns per ``r.events`` entry), with a note where they
+    are not finite (the variational equations diverged: x is checked against the bound, S
+    is not) and one where a state event is not differentiated (``stopped``: (time,
+    reason); NaN from there on)."""
+    if dtime is None:
+        dtime = np.zeros((len(r.events), parameters[-1][2] if parameters else 0))
+    r.sensitivity_data = {"signals": signals, "parameters": parameters, "events": dtime}
+    late = None
+    if stopped is not None:
+        late = r.t >= stopped[0]
+        for arr in signals.values():
+            arr[late] = np.nan
+        r.notes.append(f"sensitivities from t = {stopped[0]:.6g} s on are not computed (NaN): "
+                       f"{stopped[1]}")
     bad = [np.flatnonzero(~np.isfinite(arr.reshape(len(arr), -1)).all(axis=1))
            for arr in signals.values()]
     first = min((int(b[0]) for b in bad if b.size), default=None)
-    if first is not None:
+    if first is not None and (late is None or not late[first]):
         r.notes.append(f"sensitivities are not finite from t = {r.t[first]:.6g} s on")
-    _after_crossings(r)
     return r
 
 
-def _after_crossings(r) -> None:
-    """A located zero crossing (a state event) moves with the parameters, and that motion
-    is not differentiated here (the steps are integrated as if it were not there): the
-    sensitivities from the first crossing on are NaN, with a note saying so, never a wrong
-    number."""
-    if not r.events:
-        return
-    first = min(r.events, key=lambda e: e.time)
-    late = r.t >= first.time
-    for arr in r.sensitivity_data["signals"].values():
-        arr[late] = np.nan
-    r.notes.append(f"sensitivities from t = {first.time:.6g} s on are not computed (NaN): "
-                   f"block '{first.block}' crosses a zero there ({first.kind}), and how the "
-                   "crossing time moves with the parameters is not differentiated")
+def event_time_sensitivity(r, index: int, param: str) -> np.ndarray:
+    """d (the time of ``r.events[index]``) / d ``param`` (the parameter's shape): a located
+    crossing's time moves with the parameters (a guard's root); declared times do not (0);
+    NaN where the crossing is not differentiated (a note says why)."""
+    if r.sensitivity_data is None:
+        raise KeyError("this result has no sensitivities (simulate(d, sensitivities=[...]))")
+    for text, a, b, shape in r.sensitivity_data["parameters"]:
+        if text == param:
+            return np.asarray(r.sensitivity_data["events"][index, a:b]).reshape(shape)
+    raise KeyError(f"no sensitivity with respect to '{param}'; parameters: "
+                   f"{', '.join(r.sensitivity_parameters)}")
 
 
-__all__ = ["sensitivities", "resolve_parameter", "Parameter", "SensitivityChain",
-           "loader_derivative", "LoadedDerivative"]
+__all__ = ["sensitivities", "event_time_sensitivity", "resolve_parameter", "Parameter",
+           "SensitivityChain", "loader_derivative", "LoadedDerivative"]
