@@ -228,6 +228,26 @@ def regressor(pin, model, data, model0, data0, q, qdot, zeta, zetad) -> np.ndarr
     return plus - minus
 
 
+def regressor_rows(pin, model, data, model0, data0, q, qdot, zeta, zetad, columns, B):
+    """Y (B, n, p) of ``regressor`` for every variant (rows of q, ... or one shared row),
+    the wanted columns only (all: None): the half sums and differences formed for the batch
+    at once, pinocchio's two regressors subtracted into one array, the columns taken once."""
+    n = model.nv
+    half_sum = qdot + zeta
+    half_sum *= 0.5
+    half_difference = qdot - zeta
+    half_difference *= 0.5
+    if B > 1:
+        q, zetad, half_sum, half_difference = (np.broadcast_to(v, (B, n)) for v in (
+            q, zetad, half_sum, half_difference))
+    full = np.empty((B, n, 10 * n))
+    zeros = np.zeros(n)
+    R = pin.computeJointTorqueRegressor
+    for qb, sb, db, ab, out in zip(q, half_sum, half_difference, zetad, full):
+        np.subtract(R(model, data, qb, sb, ab), R(model0, data0, qb, db, zeros), out=out)
+    return full if columns is None else full.take(columns, axis=2)
+
+
 @functools.lru_cache(maxsize=32)
 def _base_reduction(path: str, locked: tuple, gravity: float):
     """(independent columns, K) such that Y theta = Y[:, cols] (theta[cols] + K theta[rest])
@@ -601,14 +621,14 @@ class URDFArm(MechanicalPlant):
         dx = np.empty((B, 2 * n))
         dx[:, :n] = x[:, n:]
         aba, models = self._pin.aba, self._pinocchio_models()
+        rows = zip(x[:, :n], x[:, n:], torque, dx[:, n:])
         if len(models) == 1:
             model, data = models[0]
-            for b in range(B):
-                dx[b, n:] = aba(model, data, x[b, :n], x[b, n:], torque[b])
+            for q, qdot, tau, out in rows:
+                out[:] = aba(model, data, q, qdot, tau)
         else:
-            for b in range(B):
-                model, data = models[b]
-                dx[b, n:] = aba(model, data, x[b, :n], x[b, n:], torque[b])
+            for (model, data), (q, qdot, tau, out) in zip(models, rows):
+                out[:] = aba(model, data, q, qdot, tau)
         return dx
 
 
@@ -703,19 +723,8 @@ class URDFRegressor(Block):
         B = max(v.shape[0] for v in u)
         if _uses_kernels(self.implementation, B):
             return Block.output(self, t, x, u)
-        q, qdot, zeta, zetad = u
-        cols = self._columns
-        args = (self._pin, self.model, self._data, self.model0, self._data0)
-        if B == 1:
-            Y = regressor(*args, q[0], qdot[0], zeta[0], zetad[0])
-            return ((Y if cols is None else Y[:, cols])[None],)
-        q, qdot, zeta, zetad = (np.broadcast_to(v, (B, self._n)) for v in u)
-        p = self.outputs["Y"].shape[1]
-        out = np.empty((B, self._n, p))
-        for b in range(B):
-            Y = regressor(*args, q[b], qdot[b], zeta[b], zetad[b])
-            out[b] = Y if cols is None else Y[:, cols]
-        return (out,)
+        return (regressor_rows(self._pin, self.model, self._data, self.model0, self._data0,
+                               *u, self._columns, B),)
 
 
 def frame_output(t, x, q, qdot, tree, frame):
