@@ -106,12 +106,21 @@ def _block_signature(b) -> tuple:
            tuple((p.name, p.shape) for p in b.inputs.values()),
            tuple((p.name, p.shape) for p in b.outputs.values()),
            tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
-           structural, setup_state(b))
+           structural, setup_state(b), _kernel_statics(b))
     try:
         _signatures[b] = sig
     except TypeError:                  # a block type that cannot be weakly referenced
         pass
     return sig
+
+
+def _kernel_statics(block) -> tuple:
+    """The static values of a block's kernels (``set_kernels(static=...)``): plain numbers
+    and flags the kernels are written for, which ``stack_blocks`` would take from the first
+    variant (``kernels`` itself is recomputed by ``finalize``, so ``setup_state`` leaves it
+    out).  A flag derived from a number (URDFArm's "has friction") splits the batch."""
+    kernels = getattr(block, "kernels", None)
+    return () if kernels is None else tuple(_value_key(v) for v in kernels.static)
 
 
 #: block attributes that stacking handles per variant (or that never change the numbers)

@@ -104,3 +104,21 @@ def test_panda_sweep_over_payload_and_gains_is_one_batch_of_own_runs(backend):
                                    err_msg=str(v.values))
     # the payload changes the motion (so the test would see another variant's numbers)
     assert np.abs(signals[0] - signals[2]).max() > 1e-6
+
+
+def test_sweep_over_friction_from_zero_gives_each_variant_its_own_friction():
+    """URDFArm writes its kernels with or without joint friction (a static flag from the
+    numbers): a sweep over arm.damping = 0, 5 ran both without friction in one batch (the
+    second off by 8e-3 rad in 0.05 s); now the flag splits the batch."""
+    from fwdstep.run.simulate import simulate
+    from fwdstep.structure.compiler import compile_spec
+    from fwdstep.structure.spec import load_spec
+    from fwdstep.sweeps.sweep import run_sweep
+    fixed = {"t_final": 0.05}
+    result = run_sweep(SLOTINE_LI, variants=[{"arm.damping": 0.0}, {"arm.damping": 5.0}],
+                       overrides=fixed, workers=1)
+    signals = {int(i): part["e"][:, k] for part in result.parts
+               for k, i in enumerate(part["indices"])}
+    for v in result.variants:
+        alone = simulate(compile_spec(load_spec(SLOTINE_LI, {**fixed, **v.values})))
+        np.testing.assert_allclose(signals[v.index], alone["e.y"], rtol=0, atol=1e-12)
