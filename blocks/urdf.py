@@ -237,12 +237,15 @@ def regressor_rows(pin, model, data, model0, data0, q, qdot, zeta, zetad, column
     half_sum *= 0.5
     half_difference = qdot - zeta
     half_difference *= 0.5
-    if B > 1:
-        q, zetad, half_sum, half_difference = (np.broadcast_to(v, (B, n)) for v in (
-            q, zetad, half_sum, half_difference))
-    full = np.empty((B, n, 10 * n))
     zeros = np.zeros(n)
     R = pin.computeJointTorqueRegressor
+    if B == 1:
+        full = R(model, data, q[0], half_sum[0], zetad[0])
+        np.subtract(full, R(model0, data0, q[0], half_difference[0], zeros), out=full)
+        return (full if columns is None else full.take(columns, axis=1))[None]
+    q, zetad, half_sum, half_difference = (np.broadcast_to(v, (B, n)) for v in (
+        q, zetad, half_sum, half_difference))
+    full = np.empty((B, n, 10 * n))
     for qb, sb, db, ab, out in zip(q, half_sum, half_difference, zetad, full):
         np.subtract(R(model, data, qb, sb, ab), R(model0, data0, qb, db, zeros), out=out)
     return full if columns is None else full.take(columns, axis=2)
@@ -356,23 +359,38 @@ def _summary_with_hint(cls) -> str:
 
 # ------------------------------------------------------------------------------ kernels
 def arm_output(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-               velocity_scale, theta, effort, velocity, lower, upper, friction):
+               velocity_scale, theta, effort, velocity, lower, upper, viscous_friction,
+               coulomb_friction):
     """q, qdot, theta (the parameter vector in the block's form) and the URDF's limits
     (constant)."""
     n = x.shape[1] // 2
     return x[:, :n], x[:, n:], theta, effort, velocity, lower, upper
 
 
+def arm_torque(t, x, qdot, tau, tau_star, coulomb, viscous, velocity_scale,
+               viscous_friction, coulomb_friction):
+    """tau + tau_star + tau_f: tau_f of the Friction block's law (blocks/nonlinear.py, the
+    stateless ``friction_law``) when there is Coulomb friction, its viscous part alone when
+    there is only that (the same numbers: 0 tanh(.) + F_v qdot is F_v qdot), none without
+    friction."""
+    torque = tau + tau_star
+    if coulomb_friction:
+        return torque + friction_law(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+    if viscous_friction:
+        return torque - viscous * qdot
+    return torque
+
+
 def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-                   velocity_scale, theta, effort, velocity, lower, upper, friction):
-    """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) with tau_f of
-    the Friction block's law (blocks/nonlinear.py) when ``friction``."""
+                   velocity_scale, theta, effort, velocity, lower, upper, viscous_friction,
+                   coulomb_friction):
+    """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) (``arm_torque``:
+    the flags say which friction terms are there)."""
     n = x.shape[1] // 2
     q = x[:, :n]
     qdot = x[:, n:]
-    torque = tau + tau_star
-    if friction:
-        torque = torque + friction_law(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+    torque = arm_torque(t, x, qdot, tau, tau_star, coulomb, viscous, velocity_scale,
+                        viscous_friction, coulomb_friction)
     qddot = forward_dynamics(tree, gravity, inertia, q, qdot, torque)
     dx = np.empty((qddot.shape[0], 2 * n))
     dx[:, :n] = qdot
@@ -559,7 +577,7 @@ class URDFArm(MechanicalPlant):
                          params=("tree", "gravity", "inertia", "coulomb", "viscous",
                                  "velocity_scale", "theta", "effort", "velocity", "lower",
                                  "upper"),
-                         static=(bool(np.any(damping) or np.any(coulomb)),))
+                         static=(bool(np.any(damping)), bool(np.any(coulomb))))
 
     def _with_payload(self, payload, frame, position):
         """The ten parameters of every body (the kernels' ``inertia``), the payload's
@@ -606,21 +624,24 @@ class URDFArm(MechanicalPlant):
 
     def derivative(self, t, x, u):
         """The kernel, or pinocchio's aba one variant at a time (``implementation``)."""
-        B = max(x.shape[0], u[0].shape[0], u[1].shape[0])
+        tau, tau_star = u
+        B = max(x.shape[0], tau.shape[0], tau_star.shape[0])
         if _uses_kernels(self.implementation, B):
             return Block.derivative(self, t, x, u)
         n = self._n
         p = self.p
-        torque = u[0] + u[1]
-        if self.kernels.static[0]:
-            torque = torque + friction_law(t, x, x[:, n:], p.coulomb, p.viscous,
-                                              p.velocity_scale)[0]
-        if B > 1:
-            x = np.broadcast_to(x, (B, 2 * n))
-            torque = np.broadcast_to(torque, (B, n))
+        qdot = x[:, n:]
+        torque = arm_torque(t, x, qdot, tau, tau_star, p.coulomb, p.viscous, p.velocity_scale,
+                            *self.kernels.static)
         dx = np.empty((B, 2 * n))
-        dx[:, :n] = x[:, n:]
+        dx[:, :n] = qdot
         aba, models = self._pin.aba, self._pinocchio_models()
+        if B == 1:
+            model, data = models[0]
+            dx[0, n:] = aba(model, data, x[0, :n], qdot[0], torque[0])
+            return dx
+        x = np.broadcast_to(x, (B, 2 * n))
+        torque = np.broadcast_to(torque, (B, n))
         rows = zip(x[:, :n], x[:, n:], torque, dx[:, n:])
         if len(models) == 1:
             model, data = models[0]
@@ -720,7 +741,8 @@ class URDFRegressor(Block):
 
     def output(self, t, x, u):
         """The kernel, or pinocchio's regressor one variant at a time (``implementation``)."""
-        B = max(v.shape[0] for v in u)
+        q, qdot, zeta, zetad = u
+        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
         if _uses_kernels(self.implementation, B):
             return Block.output(self, t, x, u)
         return (regressor_rows(self._pin, self.model, self._data, self.model0, self._data0,
