@@ -116,11 +116,15 @@ def _block_signature(b) -> tuple:
 
 def _kernel_statics(block) -> tuple:
     """The static values of a block's kernels (``set_kernels(static=...)``): plain numbers
-    and flags the kernels are written for, which ``stack_blocks`` would take from the first
-    variant (``kernels`` itself is recomputed by ``finalize``, so ``setup_state`` leaves it
-    out).  A flag derived from a number (URDFArm's "has friction") splits the batch."""
+    and flags the kernels are written for.  ``setup_state`` leaves ``kernels`` out because a
+    block's ``finalize`` may pick them anew from the stacked ``p``; a block that does not
+    override ``finalize`` keeps the kernels of its setup, so ``stack_blocks`` would run every
+    variant with the first one's statics: for those blocks they are part of the structure.
+    A flag derived from a number (URDFArm's "has friction") then splits the batch."""
     kernels = getattr(block, "kernels", None)
-    return () if kernels is None else tuple(_value_key(v) for v in kernels.static)
+    if kernels is None or type(block).finalize is not Block.finalize:
+        return ()
+    return tuple(_value_key(v) for v in kernels.static)
 
 
 #: block attributes that stacking handles per variant (or that never change the numbers)
