@@ -34,6 +34,25 @@ def sum_output(t, x, u, signs):
     return (y,)
 
 
+def sum_signed_output(t, x, u, signs, minus):
+    """``sum_output`` for signs shared by the batch, given as bits (bit j of ``minus`` set:
+    s_j = -1): u_1 - u_2 instead of 1 u_1 + (-1) u_2, one operation per input instead of
+    two, and the same numbers (1 u is u, a + (-1) b is a - b in IEEE arithmetic)."""
+    if len(u) == 1:
+        return (-u[0] if minus & 1 else u[0].copy(),)
+    if minus & 1:
+        y = -u[0]
+        y = y - u[1] if minus & 2 else y + u[1]
+    else:
+        y = u[0] - u[1] if minus & 2 else u[0] + u[1]
+    for j in range(2, len(u)):
+        if (minus >> j) & 1:
+            y = y - u[j]
+        else:
+            y = y + u[j]
+    return (y,)
+
+
 def solve_output(t, x, A, b, damping):
     """y = (A^T A + d 1)^-1 A^T b for m >= k (A^-1 b when A is square and d = 0), else
     y = A^T (A A^T + d 1)^-1 b, A (B, m, k), b (B, m), d = damping (B, 1): the normal
@@ -302,6 +321,19 @@ class Sum(Block):
         values = np.array([1.0 if c == "+" else -1.0 for c in signs])
         self.set_param("signs", values.reshape((len(signs),) + (1,) * len(shape)))
         self.set_kernels(output=sum_output, params=("signs",), tuple_inputs=True)
+
+    def finalize(self, batch: int) -> None:
+        """A batch whose variants share the signs (one row of ``p.signs``) runs
+        ``sum_signed_output`` (the signs as bits: half the operations of a two-input sum,
+        the same numbers); variants with their own signs keep ``sum_output``.  (The kernel
+        is picked here, after stacking, so that variants with other signs still batch.)"""
+        signs = self.p.signs
+        if signs.shape[0] == 1:
+            minus = sum(1 << j for j, v in enumerate(signs[0].reshape(-1)) if v < 0.0)
+            self.set_kernels(output=sum_signed_output, params=("signs",), static=(minus,),
+                             tuple_inputs=True)
+        else:
+            self.set_kernels(output=sum_output, params=("signs",), tuple_inputs=True)
 
     def linear_form(self):
         """y = sum_j s_j u_j as a ``LinearForm``, so the engine can fuse it with other

@@ -228,6 +228,29 @@ def regressor(pin, model, data, model0, data0, q, qdot, zeta, zetad) -> np.ndarr
     return plus - minus
 
 
+def regressor_rows(pin, model, data, model0, data0, q, qdot, zeta, zetad, columns, B):
+    """Y (B, n, p) of ``regressor`` for every variant (rows of q, ... or one shared row),
+    the wanted columns only (all: None): the half sums and differences formed for the batch
+    at once, pinocchio's two regressors subtracted into one array, the columns taken once."""
+    n = model.nv
+    half_sum = qdot + zeta
+    half_sum *= 0.5
+    half_difference = qdot - zeta
+    half_difference *= 0.5
+    zeros = np.zeros(n)
+    R = pin.computeJointTorqueRegressor
+    if B == 1:
+        full = R(model, data, q[0], half_sum[0], zetad[0])
+        np.subtract(full, R(model0, data0, q[0], half_difference[0], zeros), out=full)
+        return (full if columns is None else full.take(columns, axis=1))[None]
+    q, zetad, half_sum, half_difference = (np.broadcast_to(v, (B, n)) for v in (
+        q, zetad, half_sum, half_difference))
+    full = np.empty((B, n, 10 * n))
+    for qb, sb, db, ab, out in zip(q, half_sum, half_difference, zetad, full):
+        np.subtract(R(model, data, qb, sb, ab), R(model0, data0, qb, db, zeros), out=out)
+    return full if columns is None else full.take(columns, axis=2)
+
+
 @functools.lru_cache(maxsize=32)
 def _base_reduction(path: str, locked: tuple, gravity: float):
     """(independent columns, K) such that Y theta = Y[:, cols] (theta[cols] + K theta[rest])
@@ -299,14 +322,34 @@ def _uses_kernels(implementation: str, batch: int) -> bool:
                                            and batch >= KERNELS_FROM_BATCH)
 
 
-def _parameter_form(block, model, robot, urdf, locked_joints, gravity, parameters):
-    """theta in the block's form and the reduction (None for 'full')."""
-    theta = true_parameters(model)
+def _parameter_form(block, model, robot, urdf, locked_joints, gravity, parameters,
+                    theta=None):
+    """theta (default: the URDF's, ``true_parameters``) in the block's form and the reduction
+    (None for 'full')."""
+    theta = true_parameters(model) if theta is None else theta
     if parameters == "full":
         return theta, None
     path, locked = _description(block, robot, urdf, locked_joints)
     cols, rest, K = _base_reduction(path, locked, float(gravity))
     return theta[cols] + K @ theta[rest], cols
+
+
+def point_mass_parameters(model, frame: str, mass: float, position) -> tuple:
+    """(joint index (0-based), the ten dynamic parameters) of a point mass ``mass`` at
+    ``position`` (3, m) in the frame ``frame`` (a URDF link or joint; "": the last joint's
+    frame), about the origin of the frame of the joint that carries it:
+    [m, m c, m (|c|^2 1 - c c^T)] in pinocchio's order (c the position in that joint's
+    frame); KeyError when the robot has no such frame on a moving body."""
+    if frame:
+        placement = rb.frame_from_pinocchio(model, frame)
+        joint, R, p = int(placement[0]), placement[1:10].reshape(3, 3), placement[10:13]
+    else:
+        joint, R, p = model.nv - 1, np.eye(3), np.zeros(3)
+    c = R @ np.asarray(position, dtype=float) + p
+    m = float(mass)
+    x, y, z = c
+    return joint, np.array([m, m * x, m * y, m * z, m * (y * y + z * z), -m * x * y,
+                            m * (x * x + z * z), -m * x * z, -m * y * z, m * (x * x + y * y)])
 
 
 def _summary_with_hint(cls) -> str:
@@ -316,23 +359,38 @@ def _summary_with_hint(cls) -> str:
 
 # ------------------------------------------------------------------------------ kernels
 def arm_output(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-               velocity_scale, theta, effort, velocity, lower, upper, friction):
+               velocity_scale, theta, effort, velocity, lower, upper, viscous_friction,
+               coulomb_friction):
     """q, qdot, theta (the parameter vector in the block's form) and the URDF's limits
     (constant)."""
     n = x.shape[1] // 2
     return x[:, :n], x[:, n:], theta, effort, velocity, lower, upper
 
 
+def arm_torque(t, x, qdot, tau, tau_star, coulomb, viscous, velocity_scale,
+               viscous_friction, coulomb_friction):
+    """tau + tau_star + tau_f: tau_f of the Friction block's law (blocks/nonlinear.py, the
+    stateless ``friction_law``) when there is Coulomb friction, its viscous part alone when
+    there is only that (the same numbers: 0 tanh(.) + F_v qdot is F_v qdot), none without
+    friction."""
+    torque = tau + tau_star
+    if coulomb_friction:
+        return torque + friction_law(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+    if viscous_friction:
+        return torque - viscous * qdot
+    return torque
+
+
 def arm_derivative(t, x, tau, tau_star, tree, gravity, inertia, coulomb, viscous,
-                   velocity_scale, theta, effort, velocity, lower, upper, friction):
-    """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) with tau_f of
-    the Friction block's law (blocks/nonlinear.py) when ``friction``."""
+                   velocity_scale, theta, effort, velocity, lower, upper, viscous_friction,
+                   coulomb_friction):
+    """dx = [qdot, qddot], qddot = H^-1 (tau + tau_star + tau_f - C qdot - g) (``arm_torque``:
+    the flags say which friction terms are there)."""
     n = x.shape[1] // 2
     q = x[:, :n]
     qdot = x[:, n:]
-    torque = tau + tau_star
-    if friction:
-        torque = torque + friction_law(t, x, qdot, coulomb, viscous, velocity_scale)[0]
+    torque = arm_torque(t, x, qdot, tau, tau_star, coulomb, viscous, velocity_scale,
+                        viscous_friction, coulomb_friction)
     qddot = forward_dynamics(tree, gravity, inertia, q, qdot, torque)
     dx = np.empty((qddot.shape[0], 2 * n))
     dx[:, :n] = qdot
@@ -426,6 +484,11 @@ class URDFArm(MechanicalPlant):
         damping, coulomb: viscous (N m s/rad) and Coulomb (N m) friction, one number or n
         (default: the URDF's damping and friction).
         coulomb_velocity: velocity scale of the smoothed Coulomb term (rad/s, default 0.01).
+        payload: a mass held for the whole run (kg, default 0): a point mass at
+        payload_position (m, default [0, 0, 0]) in payload_frame (a URDF link or joint,
+        default the last joint's frame), added to the ten parameters of the body that
+        holds it (so ``theta`` includes it; the regressor does not depend on it).  A sweep
+        over it batches: every variant's dynamics take its own parameters.
         q0, qdot0: initial joint positions and velocities (one number or n numbers).
         stop_on_limits: end the run at the first recorded sample beyond a URDF limit
         (effort on tau, velocity, position), results kept (default false: report only).
@@ -438,6 +501,12 @@ class URDFArm(MechanicalPlant):
         "coulomb": Param("array", None, "Coulomb joint friction (N m): scalar or (n,); "
                                         "default: the URDF's <dynamics friction=>"),
         "coulomb_velocity": Param("float", 0.01, "velocity scale of tanh in the Coulomb term"),
+        "payload": Param("float", 0.0, "mass held by the robot (kg): a point mass at "
+                                       "payload_position in payload_frame, the whole run"),
+        "payload_frame": Param("str", "", "the URDF frame (link or joint) holding the payload; "
+                                          "default: the last joint's frame"),
+        "payload_position": Param("array", [0.0, 0.0, 0.0], "the payload's position in "
+                                                            "payload_frame (m, 3 numbers)"),
         "q0": Param("array", 0.0, "initial joint positions, scalar or (n,)"),
         "qdot0": Param("array", 0.0, "initial joint velocities, scalar or (n,)"),
         "stop_on_limits": Param("bool", False, "end the run at the first recorded sample "
@@ -448,8 +517,13 @@ class URDFArm(MechanicalPlant):
     summary = classmethod(_summary_with_hint)
     compile_with = "traced"         # compiled: the kernels traced; NumPy: see derivative
 
+    #: ``_models``: the pinocchio models of the stacked ``inertia`` rows (built when first
+    #: needed for a parameter namespace, as ``_kargs``)
+    finalize_attributes = Block.finalize_attributes + ("_models",)
+
     def setup(self, robot, urdf, locked_joints, gravity, parameters, implementation, damping,
-              coulomb, coulomb_velocity, q0, qdot0, stop_on_limits):
+              coulomb, coulomb_velocity, payload, payload_frame, payload_position, q0, qdot0,
+              stop_on_limits):
         from .robot import _vector_param
         self._pin = _pinocchio(self.name, self.type_name)
         self.model, self._data, _, _ = load_model(self, robot, urdf, locked_joints, gravity)
@@ -457,8 +531,9 @@ class URDFArm(MechanicalPlant):
         self.declare_plant(n, q0, qdot0)
         self.state_labels = [f"q_{j}" for j in self.model.names[1:]] + \
                             [f"qdot_{j}" for j in self.model.names[1:]]
+        inertia = self._with_payload(payload, payload_frame, payload_position)
         theta, _ = _parameter_form(self, self.model, robot, urdf, locked_joints, gravity,
-                                   parameters)
+                                   parameters, inertia)
         self.declare_output("theta", theta.shape, feedthrough=(), label=r"$\theta$")
         tree = rigid_body_model(*self.robot_description)[0]
         joints = list(self.model.names[1:])
@@ -481,7 +556,7 @@ class URDFArm(MechanicalPlant):
         if coulomb_velocity <= 0.0:
             raise ParameterError(f"block {self.name!r} parameter 'coulomb_velocity' must be "
                                  f"positive, got {coulomb_velocity}", block=self.name)
-        tree, inertia, urdf_damping, urdf_friction = rigid_body_model(*self.robot_description)
+        tree, _, urdf_damping, urdf_friction = rigid_body_model(*self.robot_description)
         damping = urdf_damping if damping is None else _vector_param(self, "damping", damping, n)
         coulomb = urdf_friction if coulomb is None else _vector_param(self, "coulomb", coulomb,
                                                                       n)
@@ -502,28 +577,92 @@ class URDFArm(MechanicalPlant):
                          params=("tree", "gravity", "inertia", "coulomb", "viscous",
                                  "velocity_scale", "theta", "effort", "velocity", "lower",
                                  "upper"),
-                         static=(bool(np.any(damping) or np.any(coulomb)),))
+                         static=(bool(np.any(damping)), bool(np.any(coulomb))))
+
+    def _with_payload(self, payload, frame, position):
+        """The ten parameters of every body (the kernels' ``inertia``), the payload's
+        point mass added to the body that holds it."""
+        inertia = rigid_body_model(*self.robot_description)[1]
+        position = np.asarray(position, dtype=float)
+        if not payload >= 0.0 or position.shape != (3,) or not np.all(np.isfinite(position)):
+            raise ParameterError(f"block {self.name!r}: 'payload' must be a mass >= 0 (kg) and "
+                                 f"'payload_position' 3 finite numbers (m), got {payload} and "
+                                 f"{position.tolist()}", block=self.name)
+        try:
+            joint, added = point_mass_parameters(self.model, frame, payload, position)
+        except KeyError:
+            names = ", ".join(f.name for f in self.model.frames if f.name != "universe")
+            raise ParameterError(f"block {self.name!r} parameter 'payload_frame': the robot has "
+                                 f"no frame {frame!r} on a moving body; frames are: "
+                                 f"{names}"[:400], block=self.name) from None
+        if payload == 0.0:
+            return inertia
+        inertia = inertia.copy()
+        inertia[10 * joint:10 * joint + 10] += added
+        return inertia
+
+    def _pinocchio_models(self):
+        """[(model, data)] for the rows of ``p.inertia`` (one row, or one per variant): the
+        URDF's model where a row is the URDF's parameters, else a copy holding that row's
+        inertias (a payload)."""
+        cached = self.__dict__.get("_models")
+        inertia = self.p.inertia
+        if cached is not None and cached[0] is inertia:
+            return cached[1]
+        urdf_theta = rigid_body_model(*self.robot_description)[1]
+        built, models = {}, []
+        for row in np.atleast_2d(inertia):
+            key = row.tobytes()
+            if key not in built:
+                if np.array_equal(row, urdf_theta):
+                    built[key] = (self.model, self._data)
+                else:
+                    built[key] = _model_with_parameters(self.model, row, urdf_theta)
+            models.append(built[key])
+        self._models = (inertia, models)
+        return models
 
     def derivative(self, t, x, u):
         """The kernel, or pinocchio's aba one variant at a time (``implementation``)."""
-        B = max(x.shape[0], u[0].shape[0], u[1].shape[0])
+        tau, tau_star = u
+        B = max(x.shape[0], tau.shape[0], tau_star.shape[0])
         if _uses_kernels(self.implementation, B):
             return Block.derivative(self, t, x, u)
         n = self._n
         p = self.p
-        torque = u[0] + u[1]
-        if self.kernels.static[0]:
-            torque = torque + friction_law(t, x, x[:, n:], p.coulomb, p.viscous,
-                                              p.velocity_scale)[0]
-        if B > 1:
-            x = np.broadcast_to(x, (B, 2 * n))
-            torque = np.broadcast_to(torque, (B, n))
+        qdot = x[:, n:]
+        torque = arm_torque(t, x, qdot, tau, tau_star, p.coulomb, p.viscous, p.velocity_scale,
+                            *self.kernels.static)
         dx = np.empty((B, 2 * n))
-        dx[:, :n] = x[:, n:]
-        aba, model, data = self._pin.aba, self.model, self._data
-        for b in range(B):
-            dx[b, n:] = aba(model, data, x[b, :n], x[b, n:], torque[b])
+        dx[:, :n] = qdot
+        aba, models = self._pin.aba, self._pinocchio_models()
+        if B == 1:
+            model, data = models[0]
+            dx[0, n:] = aba(model, data, x[0, :n], qdot[0], torque[0])
+            return dx
+        x = np.broadcast_to(x, (B, 2 * n))
+        torque = np.broadcast_to(torque, (B, n))
+        rows = zip(x[:, :n], x[:, n:], torque, dx[:, n:])
+        if len(models) == 1:
+            model, data = models[0]
+            for q, qdot, tau, out in rows:
+                out[:] = aba(model, data, q, qdot, tau)
+        else:
+            for (model, data), (q, qdot, tau, out) in zip(models, rows):
+                out[:] = aba(model, data, q, qdot, tau)
         return dx
+
+
+def _model_with_parameters(model, theta, urdf_theta):
+    """(a copy of the pinocchio model whose bodies have the ten parameters of theta where
+    they differ from the URDF's, urdf_theta; its data)."""
+    import pinocchio as pin
+    copy = model.copy()
+    for j in range(1, copy.njoints):
+        body = slice(10 * (j - 1), 10 * j)
+        if not np.array_equal(theta[body], urdf_theta[body]):
+            copy.inertias[j] = pin.Inertia.FromDynamicParameters(theta[body])
+    return copy, copy.createData()
 
 
 @register
@@ -602,22 +741,12 @@ class URDFRegressor(Block):
 
     def output(self, t, x, u):
         """The kernel, or pinocchio's regressor one variant at a time (``implementation``)."""
-        B = max(v.shape[0] for v in u)
+        q, qdot, zeta, zetad = u
+        B = max(q.shape[0], qdot.shape[0], zeta.shape[0], zetad.shape[0])
         if _uses_kernels(self.implementation, B):
             return Block.output(self, t, x, u)
-        q, qdot, zeta, zetad = u
-        cols = self._columns
-        args = (self._pin, self.model, self._data, self.model0, self._data0)
-        if B == 1:
-            Y = regressor(*args, q[0], qdot[0], zeta[0], zetad[0])
-            return ((Y if cols is None else Y[:, cols])[None],)
-        q, qdot, zeta, zetad = (np.broadcast_to(v, (B, self._n)) for v in u)
-        p = self.outputs["Y"].shape[1]
-        out = np.empty((B, self._n, p))
-        for b in range(B):
-            Y = regressor(*args, q[b], qdot[b], zeta[b], zetad[b])
-            out[b] = Y if cols is None else Y[:, cols]
-        return (out,)
+        return (regressor_rows(self._pin, self.model, self._data, self.model0, self._data0,
+                               *u, self._columns, B),)
 
 
 def frame_output(t, x, q, qdot, tree, frame):

@@ -106,12 +106,25 @@ def _block_signature(b) -> tuple:
            tuple((p.name, p.shape) for p in b.inputs.values()),
            tuple((p.name, p.shape) for p in b.outputs.values()),
            tuple(sorted((k, np.shape(v)) for k, v in vars(b.p).items())),
-           structural, setup_state(b))
+           structural, setup_state(b), _kernel_statics(b))
     try:
         _signatures[b] = sig
     except TypeError:                  # a block type that cannot be weakly referenced
         pass
     return sig
+
+
+def _kernel_statics(block) -> tuple:
+    """The static values of a block's kernels (``set_kernels(static=...)``): plain numbers
+    and flags the kernels are written for.  ``setup_state`` leaves ``kernels`` out because a
+    block's ``finalize`` may pick them anew from the stacked ``p``; a block that does not
+    override ``finalize`` keeps the kernels of its setup, so ``stack_blocks`` would run every
+    variant with the first one's statics: for those blocks they are part of the structure.
+    A flag derived from a number (URDFArm's "has friction") then splits the batch."""
+    kernels = getattr(block, "kernels", None)
+    if kernels is None or type(block).finalize is not Block.finalize:
+        return ()
+    return tuple(_value_key(v) for v in kernels.static)
 
 
 #: block attributes that stacking handles per variant (or that never change the numbers)

@@ -210,3 +210,32 @@ def test_bad_parameters_raise_with_exact_message(cls, params, message):
 def test_absurd_port_counts_are_refused():
     with pytest.raises(ParameterError, match="number of inputs = 5000 is larger than the limit"):
         Sum("b", signs="+" * 5000)
+
+
+@pytest.mark.parametrize("signs", ["+", "-", "+-", "-+", "--", "++", "+-+-", "-+--"])
+def test_sum_of_a_batch_with_shared_signs_gives_the_same_bits(signs):
+    """A batch whose variants share the signs runs ``sum_signed_output`` (u1 - u2 instead
+    of 1 u1 + (-1) u2): the same numbers as the general kernel and as the plain
+    expression, bit for bit, signed zeros, infinities and NaN included."""
+    from fwdstep.blocks.arithmetic import sum_output, sum_signed_output
+    from fwdstep.structure.compiler import stack_blocks
+    blocks = [[Sum("s", signs=signs, shape=[3])] for _ in range(2)]
+    stacked = stack_blocks(blocks)[0]
+    assert stacked.kernels.output is sum_signed_output
+    rng = np.random.default_rng(7)
+    u = [rng.standard_normal((5, 3)) for _ in signs]
+    u[0][0] = [0.0, -0.0, np.inf]
+    if len(u) > 1:
+        u[1][0] = [-0.0, -0.0, np.inf]
+        u[1][1, 0] = np.nan
+    with np.errstate(invalid="ignore"):                  # inf - inf: NaN on both sides
+        y = stacked.output(0.0, None, tuple(u))[0]
+        general = sum_output(0.0, None, tuple(u), stacked.p.signs)[0]
+    np.testing.assert_array_equal(np.signbit(y), np.signbit(general))
+    np.testing.assert_array_equal(y, general)
+    plain = -u[0] if signs[0] == "-" else +u[0]
+    with np.errstate(invalid="ignore"):
+        for s, v in zip(signs[1:], u[1:]):
+            plain = plain - v if s == "-" else plain + v
+    np.testing.assert_array_equal(y, plain)
+    assert y is not u[0]

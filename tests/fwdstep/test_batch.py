@@ -187,3 +187,35 @@ def test_a_number_kept_outside_p_splits_the_batch():
         stack_blocks([[a], [b]])
     stacked = stack_blocks([[a], [c]])[0]
     np.testing.assert_array_equal(stacked.p.g, [1.0, 3.0])
+
+
+def test_variants_whose_kernels_are_written_for_other_statics_are_not_stacked():
+    """A kernel's static value (``set_kernels(static=...)``) may be derived from a number
+    (URDFArm: whether there is joint friction at all): variants with other statics run other
+    code, so they must not share a batch (before, a sweep over arm.damping = 0, 5 ran both
+    without friction)."""
+    from fwdstep.core.block import Block, Param
+    from fwdstep.structure.compiler import stack_blocks, structure_signature
+
+    class Scaled(Block):
+        """Test-only: y = k u, the multiplication left out (static flag) when k == 1."""
+        params = {"k": Param("float")}
+
+        def setup(self, k):
+            self.declare_input("u", (2,))
+            self.declare_output("y", (2,))
+            self.set_param("k", [k])
+            self.set_kernels(output=_scaled_output, params=("k",), static=(k != 1.0,))
+
+    a, b, c = Scaled("s", k=1.0), Scaled("s", k=2.0), Scaled("s", k=3.0)
+    assert structure_signature([a]) != structure_signature([b])
+    assert structure_signature([b]) == structure_signature([c])
+    with pytest.raises(ConfigError, match="differ in structure"):
+        stack_blocks([[a], [b]])
+    stacked = stack_blocks([[b], [c]])[0]
+    y = stacked.output(0.0, None, (np.ones((2, 2)),))[0]
+    np.testing.assert_array_equal(y, [[2.0, 2.0], [3.0, 3.0]])
+
+
+def _scaled_output(t, x, u, k, scaled):
+    return ((k * u) if scaled else u.copy(),)
