@@ -182,11 +182,14 @@ class AdaptationLaw(Block):
         kind = self._kind()
         gain = "gamma_T" if self._matrix_gain else "gamma"
         if self._ball:
-            self.set_kernels(output=adaptation_ball_output,
+            self.set_kernels(output=(adaptation_ball_output_scalar if kind == 0
+                                     else adaptation_ball_output),
                              derivative=adaptation_ball_derivative,
                              params=(gain, "center", "radius"), static=(self._p, kind))
         elif self._box:
-            self.set_kernels(output=adaptation_box_output, derivative=adaptation_box_derivative,
+            self.set_kernels(output=(adaptation_box_output_scalar if kind == 0
+                                     else adaptation_box_output),
+                             derivative=adaptation_box_derivative,
                              params=(gain, "lower", "upper"),
                              static=(self._p, kind))
         elif self._vector:
@@ -307,9 +310,12 @@ def _base_update(t, x, W, e, gain, kind):
 
 def adaptation_box_output(t, x, W, e, gain, lower, upper, p, kind):
     """theta_hat = the first p states (the estimates; the modes follow)."""
-    if kind == 0:
-        return (x[:, 0].copy(),)
     return (x[:, :p].copy(),)
+
+
+def adaptation_box_output_scalar(t, x, W, e, gain, lower, upper, p, kind):
+    """theta_hat, a scalar signal (kind 0; one kernel per output rank, so numba types each)."""
+    return (x[:, 0].copy(),)
 
 
 def adaptation_box_derivative(t, x, W, e, gain, lower, upper, p, kind):
@@ -341,10 +347,12 @@ def ball_point(x, center, radius, p):
 
 def adaptation_ball_output(t, x, W, e, gain, center, radius, p, kind):
     """theta_hat = the estimate, on the sphere while held there."""
-    th = ball_point(x, center, radius, p)
-    if kind == 0:
-        return (th[:, 0].copy(),)
-    return (th,)
+    return (ball_point(x, center, radius, p),)
+
+
+def adaptation_ball_output_scalar(t, x, W, e, gain, center, radius, p, kind):
+    """theta_hat, a scalar signal (kind 0; one kernel per output rank)."""
+    return (ball_point(x, center, radius, p)[:, 0].copy(),)
 
 
 def adaptation_ball_derivative(t, x, W, e, gain, center, radius, p, kind):

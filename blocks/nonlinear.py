@@ -173,9 +173,12 @@ def lookup_guards(u, breakpoints):
 
 def relay_output(t, x, u, on_value, off_value, on_threshold, off_threshold, scalar):
     """y = on_value where the relay is on (its state x = 1), else off_value."""
-    if scalar:
-        return (np.where(x[:, 0] > 0.5, on_value[:, 0], off_value[:, 0]),)
     return (np.where(x > 0.5, on_value, off_value),)
+
+
+def relay_output_scalar(t, x, u, on_value, off_value, on_threshold, off_threshold, scalar):
+    """y for a scalar signal (one kernel per output rank, so numba types each)."""
+    return (np.where(x[:, 0] > 0.5, on_value[:, 0], off_value[:, 0]),)
 
 
 def relay_derivative(t, x, u, on_value, off_value, on_threshold, off_threshold, scalar):
@@ -671,7 +674,8 @@ class Relay(Block):
         for key, value in (("on_value", on_value), ("off_value", off_value),
                            ("on_threshold", on_threshold), ("off_threshold", off_threshold)):
             self.set_param(key, [value])
-        self.set_kernels(output=relay_output, derivative=relay_derivative,
+        self.set_kernels(output=relay_output_scalar if shape == () else relay_output,
+                         derivative=relay_derivative,
                          params=("on_value", "off_value", "on_threshold", "off_threshold"),
                          static=(shape == (),))
         self.declare_zero_crossings(("switch",), size)
