@@ -361,6 +361,12 @@ def cmd_identify(args) -> int:
         extra = f"   (truth {ident.truth[i]:.8g})" if i < known else ""
         print(f"  {ident.names[i]} = {v:.8g}   {100 * ident.confidence:g}% interval "
               f"[{lo:.8g}, {hi:.8g}]{extra}")
+    if known:
+        error = np.abs(ident.theta[:known] - ident.truth)
+        inside = int(np.sum(data["inside_interval"]))
+        print(f"against the truth: largest error {error.max():.3g} "
+              f"({error.max() / max(np.abs(ident.truth).max(), 1e-300):.3g} of the largest "
+              f"true value); {inside} of {known} true values inside their intervals")
     if len(ident.unidentified):
         print(f"note: {len(ident.unidentified)} parameter direction(s) not excited by the "
               "run (see identify.json, 'unidentified')")
