@@ -4,7 +4,7 @@ max_t |tau_i(t)| <= effort_i for every joint.  docs/design.md shows and discusse
 results.
 
     MPLBACKEND=Agg python examples/study_panda_tuning.py --out results/panda_tuning
-                 [--only theorem1|slotine_li] [--t-final 1] [--screen 6] [--iterations 8]
+                 [--only theorem1|slotine_li] [--t-final 0.5] [--screen 6] [--iterations 15]
 
 For each law the shipped diagram (diagrams/robots/panda_<law>.yaml) is derived, as data,
 into OUT/<law>/panda_<law>_tuning.yaml (written there, so ``fwdstep tune`` can be run on it
@@ -23,7 +23,10 @@ alone):
 
 The variables: the reference dynamics' rate (Theorem 1: ``alpha``, every root of (2) at
 -alpha; Slotine-Li: ``Lambda``), k_arm and k_wrist; the objective rms_error_norm (RMS over
-the run of |q - q_d|).  Results: OUT/<law>/ holds fwdstep tune's files (tune.json,
+the run of |q - q_d|).  Every step is logged (``log_every: 1``): objectives and constraints
+are evaluated on the logged samples, and with the shipped 10 ms the torque peak of the
+tuned Theorem 1 fell between two samples (1.098 x effort at t = 5 ms, while the logged
+maximum read 1.000).  Results: OUT/<law>/ holds fwdstep tune's files (tune.json,
 history.csv, history.png, before_after.png, best.yaml); OUT/summary.json the numbers of
 docs/design.md.
 """
@@ -89,7 +92,7 @@ def study(law: str, outdir: str, t_final: float, screen: int, iterations: int) -
     vary = dict(LAWS[law][1], **GAINS)
     started, cpu = time.time(), time.process_time()
     result = fwdstep.tune(path, vary, "rms_error_norm", [CONSTRAINT],
-                          overrides={"t_final": t_final}, screen=screen, starts=1,
+                          overrides={"t_final": t_final, "log_every": 1}, screen=screen, starts=1,
                           max_iterations=iterations, outdir=os.path.join(outdir, law, "tune"),
                           progress=lambda line: print(f"{law}: {line}", flush=True))
     with_sens = [e.seconds for e in result.history if e.gradient is not None]
@@ -112,9 +115,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="results/panda_tuning")
     ap.add_argument("--only", choices=sorted(LAWS), action="append")
-    ap.add_argument("--t-final", type=float, default=1.0)
+    ap.add_argument("--t-final", type=float, default=0.5)
     ap.add_argument("--screen", type=int, default=6)
-    ap.add_argument("--iterations", type=int, default=8)
+    ap.add_argument("--iterations", type=int, default=15)
     args = ap.parse_args(argv)
     summary_path = os.path.join(args.out, "summary.json")
     summary = {}
