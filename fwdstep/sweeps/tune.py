@@ -472,6 +472,11 @@ def history_figure(prob: _Problem, result: TuneResult, path: str) -> str:
             label="best feasible so far")
     if positive:
         ax.set_yscale("log")
+        finite = cost[np.isfinite(cost)]
+        if finite.size and finite.max() / finite.min() < 10:   # under a decade: label the
+            from matplotlib.ticker import FuncFormatter         # minor ticks too
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     ax.set_ylabel(prob.minimize)
     ax.set_title(f"tuning {', '.join(prob.names)}: {result.runs['total']} runs "
                  "(open markers: constraint violated)", fontsize=9)
