@@ -1,28 +1,32 @@
 """Parameter identification: least-squares estimate of a robot's parameters from a logged
 run (q, qdot, tau), with filtered regressors so that qddot is never needed.
 
-The robot obeys H(q) qddot + C(q, qdot) qdot + g(q) = tau, linear in the parameters:
+The robot obeys H(q) qddot + C(q, qdot) qdot + g(q) + F_v qdot = tau (F_v: per-joint
+viscous friction, identified only with ``friction="viscous"``), linear in the parameters:
 H zetad + C zeta + g = Y(q, qdot, zeta, zetad) theta (the diagram's regressor block, which
-states exactly this).  Written through the momentum H qdot,
+states exactly this, with a C satisfying Property 2: Hdot - 2C skew-symmetric, so
+Hdot = C + C^T).  Written through the momentum H qdot,
 
     d/dt (M(q, qdot) theta) + N(q, qdot) theta = tau,
     M(q, v) = Y(q, 0, 0, v) - Y(q, 0, 0, 0)                 (H(q) v = M(q, v) theta)
-    N(q, qdot) = Y(q, qdot, qdot, 0) - sum_k dM(q, qdot)/dq_k qdot_k
-                                                             (C qdot + g - Hdot qdot)
+    N(q, qdot) = G - sum_j qdot_j (Y(q, qdot, e_i, 0) - G)_j  (row i),  G = Y(q, qdot, 0, 0)
+                                        (C qdot + g - Hdot qdot = g - C^T qdot)
 
-so no acceleration appears.  Both sides go through the stable filter f(p) = lambda /
-(p + lambda) (zero initial state); since f p w = lambda (w - f w) - lambda e^{-lambda t}
-w(0) exactly,
+so no acceleration appears, and no derivative of the regressor either: every term is the
+block's own output (2 + 1 + n evaluations per sample, one batched call).  Property 2 is
+checked at two samples against the exact Hdot qdot = sum_k dM/dq_k qdot_k
+(``fwdstep.analysis.jacobian.BlockJacobian``); a regressor that violates it is refused.
+With friction, N gains the columns diag(qdot) (parameters F_v, one per joint).  Both sides
+go through the stable filter f(p) = lambda / (p + lambda) (zero initial state); since
+f p w = lambda (w - f w) - lambda e^{-lambda t} w(0) exactly,
 
     Phi theta = tau_f,   Phi = lambda (M - M_f - e^{-lambda t} M(t_0)) + N_f,
 
-one row per joint and logged time.  dM/dq_k is the exact forward-mode derivative of the
-regressor block's traced kernel (``fwdstep.analysis.jacobian.BlockJacobian``, the
-sensitivities' mechanism).  The filter runs on the logged samples, each step exact for the
-cubic through four neighbouring samples (``exponential_filter``: O(h^4), so log densely
-and do not log across a jump of tau).  ``theta = lstsq(Phi, tau_f)``; its columns' singular values tell which
-parameters the run excites (``rank``: a rank-deficient Phi is reported, the minimum-norm
-solution returned, and the directions not identified named).
+one row per joint and logged time.  The filter runs on the logged samples, each step exact
+for the cubic through four neighbouring samples (``exponential_filter``: O(h^4), so log
+densely and do not log across a jump of tau).  ``theta = lstsq(Phi, tau_f)``; its columns'
+singular values tell which parameters the run excites (``rank``: a rank-deficient Phi is
+reported, the minimum-norm solution returned, and the directions not identified named).
 
 Confidence intervals: the model is white noise of variance sigma^2 on the logged torques.
 The filtered residuals are then F e (F the filter as a matrix over the samples), correlated
@@ -47,7 +51,9 @@ from fwdstep.core.errors import ConfigError
 class Identification:
     """``theta`` (p,), ``std`` (p,), ``lower``/``upper`` (p,) at ``confidence``,
     ``residual_rms``, ``rank``, ``singular_values``, ``unidentified`` (unit directions of
-    parameter space the run does not excite), ``bandwidth`` (lambda, rad/s), ``rows``."""
+    parameter space the run does not excite), ``bandwidth`` (lambda, rad/s), ``rows``,
+    ``names``; ``truth`` (optional) covers the first len(truth) parameters (e.g. the
+    regressor's, without the friction coefficients)."""
     theta: np.ndarray
     std: np.ndarray
     lower: np.ndarray
@@ -66,9 +72,10 @@ class Identification:
         out = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                for k, v in self.__dict__.items()}
         if self.truth is not None:
-            out["inside_interval"] = ((self.truth >= self.lower) &
-                                      (self.truth <= self.upper)).tolist()
-            out["error"] = (self.theta - self.truth).tolist()
+            k = len(self.truth)
+            out["inside_interval"] = ((self.truth >= self.lower[:k]) &
+                                      (self.truth <= self.upper[:k])).tolist()
+            out["error"] = (self.theta[:k] - self.truth).tolist()
         return out
 
 
@@ -131,47 +138,117 @@ def exponential_filter(t: np.ndarray, w: np.ndarray, lam: float,
     return z
 
 
-def regressor_terms(block, q: np.ndarray, qdot: np.ndarray) -> tuple:
-    """M(q, qdot) and N(q, qdot) (module docstring), each (T, n, p), from the regressor
-    block (inputs q, qdot, zeta, zetad; output Y (n, p))."""
-    from fwdstep.analysis.jacobian import BlockJacobian
-    names = list(block.inputs)
-    if names[:4] != ["q", "qdot", "zeta", "zetad"] or len(block.outputs) != 1:
+FRICTION = ("none", "viscous")
+
+
+def _regressor(block):
+    """The block's output port name, refusing blocks that are not Y(q, qdot, zeta, zetad)."""
+    if list(block.inputs)[:4] != ["q", "qdot", "zeta", "zetad"] or len(block.outputs) != 1:
         raise ConfigError(f"block '{block.name}' ({block.type_name}) is not a regressor "
                           "Y(q, qdot, zeta, zetad) with one output")
+    return next(iter(block.outputs))
+
+
+def _evaluate(block, port, q, qdot, zeta, zetad) -> np.ndarray:
+    """Y at B points (every argument (B, n)): (B, n, p)."""
+    B = len(q)
+    y = block.output(0.0, np.zeros((B, block.n_states)), (q, qdot, zeta, zetad))[0]
+    return np.broadcast_to(y, (B,) + tuple(block.outputs[port].shape))
+
+
+def _check_property2(block, port, q, qdot, M, N, samples) -> None:
+    """N must equal Y(q, qdot, qdot, 0) - Hdot qdot with Hdot qdot = sum_k dM/dq_k qdot_k,
+    the exact (or Richardson) Jacobian of the block: true iff Hdot = C + C^T along qdot."""
+    from fwdstep.analysis.jacobian import BlockJacobian
+    k = np.asarray(samples)
+    qs, vs, zero = q[k], qdot[k], np.zeros_like(q[k])
+    x = np.zeros((len(k), block.n_states))
+    jac = BlockJacobian(block)
+    out = f"y.{port}"
+    dM = (jac.at(0.0, x, (qs, zero, zero, vs)).part(out, "u.q")
+          - jac.at(0.0, x, (qs, zero, zero, zero)).part(out, "u.q"))      # (K, n p, n)
+    Hdot = np.einsum("trk,tk->tr", dM, vs).reshape(M[k].shape)
+    expected = _evaluate(block, port, qs, vs, vs, zero) - Hdot
+    scale = max(float(np.abs(expected).max()), float(np.abs(M[k]).max()), 1e-300)
+    worst = float(np.abs(N[k] - expected).max()) / scale
+    if worst > 1e-6:
+        raise ConfigError(f"block '{block.name}' ({block.type_name}): its C(q, qdot) does not "
+                          f"satisfy Property 2 (Hdot = C + C^T; off by {worst:.2g} relative "
+                          "at a logged sample), which identification's momentum form needs")
+
+
+def regressor_terms(block, q: np.ndarray, qdot: np.ndarray, friction: str = "none") -> tuple:
+    """M(q, qdot) and N(q, qdot) (module docstring), each (T, n, p), from the regressor
+    block (inputs q, qdot, zeta, zetad; output Y (n, p)); ``friction="viscous"`` appends the
+    n columns of F_v qdot (zero in M, diag(qdot) in N)."""
+    port = _regressor(block)
+    if friction not in FRICTION:
+        raise ConfigError(f"friction '{friction}': expected one of {', '.join(FRICTION)}")
     T, n = q.shape
     zero = np.zeros_like(q)
-    x = np.zeros((T, block.n_states))
+    eye = np.broadcast_to(np.eye(n)[:, None, :], (n, T, n)).reshape(n * T, n)
+    q_all = np.concatenate([q, q, q, np.tile(q, (n, 1))])
+    v_all = np.concatenate([zero, zero, qdot, np.tile(qdot, (n, 1))])
+    zeta_all = np.concatenate([zero, zero, zero, eye])
+    zetad_all = np.concatenate([qdot, zero, zero, np.zeros((n * T, n))])
+    Y = _evaluate(block, port, q_all, v_all, zeta_all, zetad_all)
+    M = Y[:T] - Y[T:2 * T]
+    G = Y[2 * T:3 * T]
+    Ce = Y[3 * T:].reshape((n, T) + G.shape[1:]) - G[None]   # [i]: regressor of C e_i
+    N = G - np.einsum("itjp,tj->tip", Ce, qdot)               # g - C^T qdot
+    _check_property2(block, port, q, qdot, M, N,
+                     sorted({int(np.argmax(np.abs(qdot).sum(axis=1))), T // 2}))
+    if friction == "viscous":
+        M = np.concatenate([M, np.zeros((T, n, n))], axis=2)
+        N = np.concatenate([N, qdot[:, :, None] * np.eye(n)[None]], axis=2)
+    return M, N
 
-    def Y(a, b, c, e):
-        return np.broadcast_to(block.output(0.0, x, (a, b, c, e))[0],
-                               (T,) + tuple(block.outputs[next(iter(block.outputs))].shape))
 
-    M = Y(q, zero, zero, qdot) - Y(q, zero, zero, zero)
-    jac = BlockJacobian(block)
-    out = f"y.{next(iter(block.outputs))}"
-    dM = (jac.at(0.0, x, (q, zero, zero, qdot)).part(out, "u.q")
-          - jac.at(0.0, x, (q, zero, zero, zero)).part(out, "u.q"))       # (T, n p, n)
-    Hdot = np.einsum("trk,tk->tr", dM, qdot).reshape(M.shape)
-    N = Y(q, qdot, qdot, zero) - Hdot
-    return M, N, jac.method
+def parameter_names(block, friction: str = "none") -> list:
+    """theta[0..p-1] of the regressor, then F_v[0..n-1] with viscous friction."""
+    n, p = block.outputs[_regressor(block)].shape
+    names = [f"theta[{i}]" for i in range(p)]
+    return names + ([f"F_v[{i}]" for i in range(n)] if friction == "viscous" else [])
+
+
+def filtered_regressor(t, q, qdot, block, bandwidth: float,
+                       friction: str = "none") -> np.ndarray:
+    """Phi (T, n, p) of the module docstring: the filtered momentum form."""
+    t = np.asarray(t, dtype=float)
+    q, qdot = (np.asarray(a, dtype=float).reshape(len(t), -1) for a in (q, qdot))
+    lam = float(bandwidth)
+    M, N = regressor_terms(block, q, qdot, friction)
+    decay = np.exp(-lam * (t - t[0]))[:, None, None]
+    return (lam * (M - exponential_filter(t, M, lam) - decay * M[0])
+            + exponential_filter(t, N, lam))
+
+
+def default_bandwidth(t) -> float:
+    """min(20, 0.05 / log interval) rad/s."""
+    return min(20.0, 0.05 / float(np.median(np.diff(np.asarray(t, dtype=float)))))
 
 
 def estimate(t, q, qdot, tau, block, bandwidth: float | None = None,
-             confidence: float = 0.95, truth=None) -> Identification:
+             confidence: float = 0.95, truth=None, friction: str = "none") -> Identification:
     """The least-squares estimate from logged arrays (module docstring)."""
-    from scipy.stats import norm
     t = np.asarray(t, dtype=float)
-    q, qdot, tau = (np.asarray(a, dtype=float).reshape(len(t), -1) for a in (q, qdot, tau))
     if len(t) < 3:
         raise ConfigError("identification needs at least 3 logged samples")
-    h = float(np.median(np.diff(t)))
-    lam = float(bandwidth) if bandwidth else min(20.0, 0.05 / h)
-    M, N, _ = regressor_terms(block, q, qdot)
-    T, n, p = M.shape
-    decay = np.exp(-lam * (t - t[0]))[:, None, None]
-    Phi = lam * (M - exponential_filter(t, M, lam) - decay * M[0]) + exponential_filter(t, N,
-                                                                                        lam)
+    lam = float(bandwidth) if bandwidth else default_bandwidth(t)
+    Phi = filtered_regressor(t, q, qdot, block, lam, friction)
+    return least_squares(t, Phi, tau, lam, confidence, truth,
+                         parameter_names(block, friction))
+
+
+def least_squares(t, Phi: np.ndarray, tau, bandwidth: float, confidence: float = 0.95,
+                  truth=None, names=None) -> Identification:
+    """theta = lstsq(Phi, f tau) and its intervals (module docstring), for a Phi of
+    ``filtered_regressor`` (reusable for several torque records of one motion)."""
+    from scipy.stats import norm
+    t = np.asarray(t, dtype=float)
+    lam = float(bandwidth)
+    T, n, p = Phi.shape
+    tau = np.asarray(tau, dtype=float).reshape(T, n)
     y = exponential_filter(t, tau, lam)
     A = Phi.reshape(T * n, p)
     b = y.reshape(T * n)
@@ -201,7 +278,7 @@ def estimate(t, q, qdot, tau, block, bandwidth: float | None = None,
                           rank=int(rank), singular_values=sv, unidentified=unidentified,
                           bandwidth=lam, rows=int(T * n),
                           truth=None if truth is None else np.asarray(truth, float).reshape(-1),
-                          names=[f"theta[{i}]" for i in range(p)])
+                          names=list(names) if names else [f"theta[{i}]" for i in range(p)])
 
 
 def _driver(d, block: str, port: str) -> str | None:
@@ -212,12 +289,14 @@ def _driver(d, block: str, port: str) -> str | None:
 
 
 def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
-                 bandwidth=None, confidence: float = 0.95, truth=None) -> tuple:
+                 bandwidth=None, confidence: float = 0.95, truth=None,
+                 friction: str = "none") -> tuple:
     """(``Identification``, the signal names used, the diagram) from a saved run directory
     (``fwdstep run D -o RUN``): the run's diagram is loaded again as it was run (its recorded
     copy and --set values, fwdstep.results.provenance), the
     regressor block taken from it, q/qdot default to the signals feeding the regressor's q
-    and qdot inputs, tau to the input 'tau' of the block producing q."""
+    and qdot inputs, tau to the input 'tau' of the block producing q; ``friction``: also
+    estimate per-joint viscous friction ("viscous")."""
     from fwdstep.results.result import load_result
     from fwdstep.structure.compiler import load_diagram
     r = load_result(run_dir)
@@ -253,10 +332,16 @@ def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
         if truth not in r:
             raise ConfigError(f"--truth '{truth}' was not logged", file=d.file)
         truth = np.asarray(r[truth])[0]
+    p = len(parameter_names(blocks[regressor]))
+    if truth is not None and np.size(truth) not in (p, len(parameter_names(blocks[regressor],
+                                                                             friction))):
+        raise ConfigError(f"--truth has {np.size(truth)} values; the regressor "
+                          f"'{regressor}' has {p} parameters", file=d.file)
     ident = estimate(r.t, r[q], r[qdot], r[tau], blocks[regressor], bandwidth, confidence,
-                     truth)
+                     truth, friction)
     return ident, names, d
 
 
 __all__ = ["Identification", "estimate", "identify_run", "regressor_terms",
-           "exponential_filter"]
+           "exponential_filter", "filtered_regressor", "least_squares", "parameter_names",
+           "default_bandwidth", "FRICTION"]

@@ -188,6 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--bandwidth", type=float, default=None, metavar="LAMBDA",
                        help="filter lambda/(p + lambda), lambda in rad/s (default: "
                             "min(20, 0.05 / log interval))")
+    ident.add_argument("--friction", choices=("none", "viscous"), default="none",
+                       help="also estimate per-joint viscous friction F_v (tau_f = -F_v "
+                            "qdot), appended after the regressor's parameters")
     ident.add_argument("--truth", default=None, metavar="SIGNAL",
                        help="a logged signal holding the true parameters, for comparison")
     ident.add_argument("--confidence", type=float, default=0.95,

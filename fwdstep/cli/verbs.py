@@ -338,7 +338,8 @@ def cmd_identify(args) -> int:
     outdir = args.outdir or os.path.join(args.run, "identify")
     try:
         ident, names, _ = identify_run(args.run, args.regressor, args.q, args.qdot, args.tau,
-                                       args.bandwidth, args.confidence, args.truth)
+                                       args.bandwidth, args.confidence, args.truth,
+                                       args.friction)
         out = OutputDir(outdir, args.force, expected=["identify.json"])
         out.__enter__()
     except (DiagramError, OutputError) as exc:
@@ -355,10 +356,17 @@ def cmd_identify(args) -> int:
     print(f"identified {len(ident.theta)} parameters from {ident.rows} rows "
           f"(q={names['q']}, qdot={names['qdot']}, tau={names['tau']}, filter "
           f"lambda = {ident.bandwidth:g} rad/s), rank {ident.rank}:")
+    known = 0 if ident.truth is None else len(ident.truth)
     for i, (v, lo, hi) in enumerate(zip(ident.theta, ident.lower, ident.upper)):
-        extra = "" if ident.truth is None else f"   (truth {ident.truth[i]:.8g})"
-        print(f"  theta[{i}] = {v:.8g}   {100 * ident.confidence:g}% interval "
+        extra = f"   (truth {ident.truth[i]:.8g})" if i < known else ""
+        print(f"  {ident.names[i]} = {v:.8g}   {100 * ident.confidence:g}% interval "
               f"[{lo:.8g}, {hi:.8g}]{extra}")
+    if known:
+        error = np.abs(ident.theta[:known] - ident.truth)
+        inside = int(np.sum(data["inside_interval"]))
+        print(f"against the truth: largest error {error.max():.3g} "
+              f"({error.max() / max(np.abs(ident.truth).max(), 1e-300):.3g} of the largest "
+              f"true value); {inside} of {known} true values inside their intervals")
     if len(ident.unidentified):
         print(f"note: {len(ident.unidentified)} parameter direction(s) not excited by the "
               "run (see identify.json, 'unidentified')")

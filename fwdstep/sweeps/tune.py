@@ -472,6 +472,11 @@ def history_figure(prob: _Problem, result: TuneResult, path: str) -> str:
             label="best feasible so far")
     if positive:
         ax.set_yscale("log")
+        finite = cost[np.isfinite(cost)]
+        if finite.size and finite.max() / finite.min() < 10:   # under a decade: label the
+            from matplotlib.ticker import FuncFormatter         # minor ticks too
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}"))
     ax.set_ylabel(prob.minimize)
     ax.set_title(f"tuning {', '.join(prob.names)}: {result.runs['total']} runs "
                  "(open markers: constraint violated)", fontsize=9)
@@ -501,6 +506,19 @@ def _objective_signals(prob: _Problem) -> list:
     return out
 
 
+def _line(colour, style, label):
+    from matplotlib.lines import Line2D
+    return Line2D([], [], color=colour, ls=style, lw=1.2, label=label)
+
+
+def _style_handles(components: int) -> list:
+    """Legend entries: before (dashed) and after (solid), then one colour per component."""
+    handles = [_line("0.3", "--", "before"), _line("0.3", "-", "after")]
+    if components > 1:
+        handles += [_line(f"C{c % 10}", "-", f"[{c}]") for c in range(components)]
+    return handles
+
+
 def before_after_figure(prob: _Problem, result: TuneResult, path: str) -> str:
     """The signals the objective and constraints read, for the diagram as given and tuned,
     the constraint bounds drawn on the signals they limit (max_abs constraints)."""
@@ -513,24 +531,27 @@ def before_after_figure(prob: _Problem, result: TuneResult, path: str) -> str:
         except FwdstepError as exc:
             runs[label] = getattr(exc, "result", None)
     signals = _objective_signals(prob)
-    fig, axes = _figure(max(1, len(signals)))
+    fig, axes = _figure(max(1, len(signals)), width=8.5)
     for ax, sig in zip(axes, signals):
-        for label, colour in (("before", "0.5"), ("after", "tab:blue")):
+        components = 1
+        for label, style in (("before", "--"), ("after", "-")):
             r = runs.get(label)
             if r is None or sig not in r:
                 continue
             y = np.asarray(r[sig]).reshape(len(r.t), -1)
-            for c in range(y.shape[1]):
-                ax.plot(r.t, y[:, c], color=colour, lw=1.0 if label == "after" else 0.8,
-                        ls="-" if c == 0 else "--",
-                        label=f"{label}" + (f" [{c}]" if y.shape[1] > 1 else ""))
+            components = max(components, y.shape[1])
+            for c in range(y.shape[1]):     # one colour per component, before dashed
+                ax.plot(r.t, y[:, c], color=f"C{c % 10}", ls=style,
+                        lw=1.2 if label == "after" else 0.9)
+        handles = _style_handles(components)
         for expr, op, b in prob.constraints:
             fn, s, _ = parse_objective(expr)
             if s == sig and fn == "max_abs":
                 ax.axhline(b, color="tab:red", lw=0.8, ls=":")
-                ax.axhline(-b, color="tab:red", lw=0.8, ls=":", label=f"+-{b:g}")
+                ax.axhline(-b, color="tab:red", lw=0.8, ls=":")
+                handles.append(_line("tab:red", ":", f"|{sig}| <= {b:g}"))
         ax.set_ylabel(sig)
-        ax.legend(fontsize=7, ncol=3)
+        ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         ax.grid(True, lw=0.3)
     axes[-1].set_xlabel("t (s)")
     before = ", ".join(f"{n}={v:.4g}" for n, v in result.initial.items())

@@ -75,3 +75,23 @@ def test_cli_identify(tmp_path):
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 2
     assert "has no block 'Z'" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_regressor_whose_C_breaks_property_2_is_refused(run):
+    """C' = C + S with S = diag(q_1 qdot_1, 0) symmetric: (C' + C'^T) qdot != Hdot qdot, so
+    the momentum form's N = g - C'^T qdot would be wrong; identification refuses it."""
+    import copy
+    from fwdstep.core.errors import ConfigError
+    r, Y, _ = run
+
+    class NotChristoffel(type(Y)):
+        def output(self, t, x, u):
+            out = np.array(np.broadcast_to(super().output(t, x, u)[0],
+                                           (len(u[0]),) + self.outputs["Y"].shape))
+            out[:, 0, 0] += u[0][:, 0] * u[1][:, 0] * u[2][:, 0]
+            return (out,)
+
+    bad = copy.copy(Y)
+    bad.__class__ = NotChristoffel
+    with pytest.raises(ConfigError, match="does not satisfy Property 2"):
+        estimate(r.t, r["arm.q"], r["arm.qdot"], r["tau.y"], bad, bandwidth=10.0)
