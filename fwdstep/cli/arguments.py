@@ -166,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     tu.add_argument("--seed", type=int, default=0, help="seed of the screening design (0)")
     tu.add_argument("--max-iterations", type=int, default=30, metavar="N",
                     help="iterations of each local search (30)")
+    tu.add_argument("--backend", choices=BACKENDS, default=None,
+                    help="backend of every evaluation (default: the diagram's "
+                         "simulation.backend); compiled: sensitivities in compiled code")
     tu.add_argument("--set", action="append", default=[], metavar="NAME=VALUE", help=_SET_HELP)
     tu.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
                     help=_PLUGIN_HELP)

@@ -309,6 +309,7 @@ def cmd_tune(args) -> int:
         result = tune(path, vary, args.minimize, args.subject_to, overrides=overrides,
                       screen=args.screen, starts=args.starts, design=args.design,
                       seed=args.seed, max_iterations=args.max_iterations, outdir=out.dir,
+                      backend=args.backend,
                       progress=None if args.quiet else (lambda line: print(printable(line),
                                                                            flush=True)))
         written = out.commit()

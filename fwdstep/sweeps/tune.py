@@ -81,6 +81,7 @@ class Evaluation:
     status: str
     feasible: bool
     seconds: float
+    backend: str = ""           # the backend that ran it (a fallback to numpy says so)
 
 
 @dataclass
@@ -105,7 +106,7 @@ class TuneResult:
 class _Problem:
     """The diagram at any point of the variables: loading, running, the objective."""
 
-    def __init__(self, path, vary, minimize, subject_to, overrides, plugins):
+    def __init__(self, path, vary, minimize, subject_to, overrides, plugins, backend=None):
         from fwdstep.structure.compiler import load_diagram
         self.path = path
         self.base = dict(overrides or {})
@@ -115,6 +116,7 @@ class _Problem:
         self.minimize = minimize
         self.constraints = [parse_constraint(c) for c in (subject_to or [])]
         self.plugins = plugins
+        self.backend = backend              # None: each diagram's own simulation.backend
         self.d0 = load_diagram(path, self.base, plugins=plugins)
         from fwdstep.analysis.sensitivity import resolve_parameter
         self.params = [resolve_parameter(self.d0, n) for n in self.names]
@@ -150,10 +152,10 @@ class _Problem:
         status, grad, cons = "ok", None, []
         try:
             if gradient:
-                r = sensitivities(d, self.names)
+                r = sensitivities(d, self.names, backend=self.backend)
                 self.sensitivity_runs += 1
             else:
-                r = simulate(d, backend="numpy")
+                r = simulate(d, backend=self.backend)
                 self.plain_runs += 1
         except FwdstepError as exc:
             r, status = getattr(exc, "result", None), "error"
@@ -176,7 +178,8 @@ class _Problem:
         feasible = status == "ok" and all(
             (v <= b if op == "<=" else v >= b) for v, (_, op, b) in zip(cons, self.constraints))
         ev = Evaluation(len(self.history), phase, start, np.array(x, dtype=float), float(cost),
-                        cons, grad, status, feasible, time.perf_counter() - wall)
+                        cons, grad, status, feasible, time.perf_counter() - wall,
+                        getattr(r, "backend", "") or "")
         self.history.append(ev)
         return ev
 
@@ -199,11 +202,13 @@ class _Problem:
 def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
          screen: int = 16, starts: int = 3, design: str = "sobol", seed: int = 0,
          max_iterations: int = 30, outdir: str | None = None, progress=None,
-         plugins=None, figures: bool = True) -> TuneResult:
+         plugins=None, figures: bool = True, backend: str | None = None) -> TuneResult:
     """Tune the parameters ``vary`` ({name: (low, high)}) of the diagram file ``path`` (see
     the module docstring).  ``progress(text)`` receives one line per evaluation.  With
-    ``outdir``, the files of the module docstring are written there (``FILES``)."""
-    prob = _Problem(path, vary, minimize, subject_to, overrides, plugins)
+    ``outdir``, the files of the module docstring are written there (``FILES``).
+    ``backend`` ("numpy" or "compiled"; None: the diagram's own ``simulation.backend``) runs
+    every evaluation, plain runs and runs with sensitivities alike."""
+    prob = _Problem(path, vary, minimize, subject_to, overrides, plugins, backend)
     lo, hi = prob.bounds[:, 0], prob.bounds[:, 1]
     span = hi - lo
     n = len(prob.names)
@@ -511,11 +516,13 @@ def _line(colour, style, label):
     return Line2D([], [], color=colour, ls=style, lw=1.2, label=label)
 
 
-def _style_handles(components: int) -> list:
-    """Legend entries: before (dashed) and after (solid), then one colour per component."""
+def _style_handles(components: int, names=()) -> list:
+    """Legend entries: before (dashed) and after (solid), then one colour per component
+    (named as the result's figures name them, else by index)."""
     handles = [_line("0.3", "--", "before"), _line("0.3", "-", "after")]
     if components > 1:
-        handles += [_line(f"C{c % 10}", "-", f"[{c}]") for c in range(components)]
+        names = list(names) if len(names) == components else [f"[{c}]" for c in range(components)]
+        handles += [_line(f"C{c % 10}", "-", names[c]) for c in range(components)]
     return handles
 
 
@@ -527,7 +534,7 @@ def before_after_figure(prob: _Problem, result: TuneResult, path: str) -> str:
     for label, x in (("before", [result.initial[n] for n in prob.names]),
                      ("after", [result.best[n] for n in prob.names])):
         try:
-            runs[label] = simulate(prob.diagram(x), backend="numpy")
+            runs[label] = simulate(prob.diagram(x), backend=prob.backend)
         except FwdstepError as exc:
             runs[label] = getattr(exc, "result", None)
     signals = _objective_signals(prob)
@@ -543,14 +550,17 @@ def before_after_figure(prob: _Problem, result: TuneResult, path: str) -> str:
             for c in range(y.shape[1]):     # one colour per component, before dashed
                 ax.plot(r.t, y[:, c], color=f"C{c % 10}", ls=style,
                         lw=1.2 if label == "after" else 0.9)
-        handles = _style_handles(components)
+        from fwdstep.results.plotting import signal_info
+        shown = runs.get("after") or runs.get("before")
+        info = signal_info(shown, sig) if shown is not None and sig in shown else None
+        handles = _style_handles(components, info.components if info is not None else ())
         for expr, op, b in prob.constraints:
             fn, s, _ = parse_objective(expr)
             if s == sig and fn == "max_abs":
                 ax.axhline(b, color="tab:red", lw=0.8, ls=":")
                 ax.axhline(-b, color="tab:red", lw=0.8, ls=":")
                 handles.append(_line("tab:red", ":", f"|{sig}| <= {b:g}"))
-        ax.set_ylabel(sig)
+        ax.set_ylabel(info.axis_label() if info is not None else sig)
         ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         ax.grid(True, lw=0.3)
     axes[-1].set_xlabel("t (s)")

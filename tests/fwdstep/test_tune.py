@@ -97,3 +97,18 @@ def test_cli_tune_writes_its_files_and_refuses_bad_options(pi_diagram, tmp_path)
     assert done.returncode == 2
     assert "the diagram has no parameter 'Kq'" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_compiled_backend_tunes_the_same_search(pi_diagram):
+    """`backend="compiled"` runs every evaluation (plain and with sensitivities) in compiled
+    code; the search is the same one: the same points to the sensitivities' agreement."""
+    pytest.importorskip("numba")
+    kw = dict(screen=4, starts=1, max_iterations=4)
+    a = tune(pi_diagram, BOUNDS, "ise(e.y)", ["max_abs(pi.y) <= 2"], backend="numpy", **kw)
+    b = tune(pi_diagram, BOUNDS, "ise(e.y)", ["max_abs(pi.y) <= 2"], backend="compiled", **kw)
+    assert {e.backend for e in a.history} == {"numpy"}
+    assert {e.backend for e in b.history} == {"compiled"}
+    assert len(b.history) == len(a.history) and b.runs == a.runs
+    for k in BOUNDS:
+        assert b.best[k] == pytest.approx(a.best[k], rel=1e-8)
+    assert b.best_cost == pytest.approx(a.best_cost, rel=1e-9)
