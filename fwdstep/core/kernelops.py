@@ -28,16 +28,23 @@ SMALL = 32
 
 
 def bvecmat(v, M):
-    """y[b] = v[b] @ M[b]: v (B, n), M (B, n, m) -> (B, m)."""
+    """y[b] = v[b] @ M[b]: v (B, n), M (B, n, m) -> (B, m).  Above ``SMALL`` entries one
+    variant is one ``np.dot`` (BLAS gemv, as np.matmul calls per variant: the same bits,
+    tested) without the stacked product's set-up (7x43: 0.9 instead of 1.3 us)."""
     if M.shape[1] * M.shape[2] <= SMALL:
         return _einsum("bi,bij->bj", v, M)
+    if M.shape[0] == 1 and v.shape[0] == 1:
+        return np.dot(v[0], M[0])[None]
     return np.matmul(v[:, None, :], M)[:, 0, :]
 
 
 def bmatvec(M, v):
-    """y[b] = M[b] @ v[b]: M (B, n, m), v (B, m) -> (B, n)."""
+    """y[b] = M[b] @ v[b]: M (B, n, m), v (B, m) -> (B, n) (one variant: ``np.dot``, as
+    ``bvecmat``)."""
     if M.shape[1] * M.shape[2] <= SMALL:
         return _einsum("bij,bj->bi", M, v)
+    if M.shape[0] == 1 and v.shape[0] == 1:
+        return np.dot(M[0], v[0])[None]
     return np.matmul(M, v[:, :, None])[:, :, 0]
 
 

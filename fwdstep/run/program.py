@@ -144,13 +144,22 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     for s in range(S):
         ns[f"K{s}"] = K[s]
 
-    plan = plan_fusion(d.schedule, d.signal_shapes, d.constant_signals) if fuse else None
+    # the signals a stage needs when it records nothing: what the derivatives, the guards
+    # and the discrete blocks read, and what those are computed from.  The blocks producing
+    # none of them (stateless blocks whose outputs are only logged, e.g. an error signal
+    # for a plot) run at the recorded stage 1 only: after the others, unfused, every
+    # ``log_every`` steps instead of every stage.
+    needed, live = _needed_signals(d, sampled, crossings)
+    stage_schedule = [st for st in d.schedule if id(st) in live]
+    plan = (plan_fusion(stage_schedule, d.signal_shapes, d.constant_signals) if fuse
+            else None)
     if plan is None:
-        ops = [("call", step) for step in d.schedule]
+        ops = [("call", step) for step in stage_schedule]
         called_stateful = list(d.stateful)
     else:
         ops = plan.ops
         called_stateful = [s for s in d.stateful if s.block.name not in plan.fused]
+    record_ops = ops + [("call", st) for st in d.schedule if id(st) not in live]
 
     def state_view(buffer, sl):
         """Name of the constant view of a block's state in ``buffer`` (made once)."""
@@ -166,7 +175,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     for idx, arr in d.constant_signals.items():
         name[idx] = src.const("zero", arr)
     producer_call: dict = {}
-    for kind, op in ops:
+    for kind, op in record_ops:
         if kind == "call":
             for idx in op.outputs:
                 producer_call[idx] = op
@@ -182,7 +191,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
     # feedthrough): kept in a cell that holds the previous stage's value
     stale: set = set()
     done: set = set(d.constant_signals)
-    for kind, op in ops:
+    for kind, op in record_ops:
         if kind == "call":
             stale.update(u for u in op.inputs if u not in done and u in producer_call)
             done.update(op.outputs)
@@ -243,9 +252,16 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
         return [f"if {cell}[0] != ts:", f"    {cell}[1] = {call}", f"    {cell}[0] = ts",
                 f"{target} = {cell}[1]"]
 
-    def output_pass(buffer) -> list:
+    def output_pass(buffer, record: bool = False) -> list:
+        """Every block output at the stage (``record``: for the log and the probe too; else
+        the needed ones only, see ``_needed_signals``)."""
+        bound = None if record else needed | stale
+
+        def binds(idx) -> bool:
+            return bound is None or idx in bound
+
         lines = []
-        for kind, op in ops:
+        for kind, op in (record_ops if record else ops):
             if kind == "group":
                 g = groups[id(op)]
                 if op.outputs:
@@ -253,12 +269,23 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 continue
             blk = op.block
             if direct(blk, "output") and blk.kernels.packed:
-                lines.extend(memo(blk, "r", kernel_call(blk, blk.kernels.output, state_view(
-                    buffer, op.state), op.inputs)))
-                for idx, (a, b, shape) in zip(op.outputs, blk._unpack):
-                    lines.append(f"{name[idx]} = r[:, {a}:{b}]" if shape is None else
-                                 f"{name[idx]} = r[:, {a}:{b}].reshape((r.shape[0],) + "
-                                 f"{src.const('shape', shape)})")
+                call = kernel_call(blk, blk.kernels.output, state_view(buffer, op.state),
+                                   op.inputs)
+                unpack = [f"r[:, {a}:{b}]" if shape is None else
+                          f"r[:, {a}:{b}].reshape((r.shape[0],) + "
+                          f"{src.const('shape', shape)})" for a, b, shape in blk._unpack]
+                if time_only(blk):
+                    # the outputs sliced once per new stage time, with the packed value
+                    if id(blk) not in cells:
+                        cells[id(blk)] = src.const("memo", [math.nan, None, None])
+                    cell = cells[id(blk)]
+                    lines += [f"if {cell}[0] != ts:", f"    r = {call}", f"    {cell}[1] = r",
+                              f"    {cell}[2] = ({', '.join(unpack)},)", f"    {cell}[0] = ts",
+                              f"{', '.join(name[idx] for idx in op.outputs)}, = {cell}[2]"]
+                else:
+                    lines.append(f"r = {call}")
+                    lines.extend(f"{name[idx]} = {value}" for idx, value in
+                                 zip(op.outputs, unpack) if binds(idx))
                 lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)
                 continue
             if direct(blk, "output"):
@@ -270,12 +297,13 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             if time_only(blk) and direct(blk, "output"):
                 lines.extend(memo(blk, "r", call))
                 call = "r"
-            if len(op.outputs) == 1:
+            if len(op.outputs) == 1 and binds(op.outputs[0]):
                 lines.append(f"{name[op.outputs[0]]} = {call}[0]")
             else:
                 if call != "r":
                     lines.append(f"r = {call}")
-                lines.extend(f"{name[idx]} = r[{k}]" for k, idx in enumerate(op.outputs))
+                lines.extend(f"{name[idx]} = r[{k}]" for k, idx in enumerate(op.outputs)
+                             if binds(idx))
             lines.extend(f"S[{idx}] = {name[idx]}" for idx in op.outputs if idx in stale)
         return lines
 
@@ -345,8 +373,9 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                                                         f"{args(st.inputs)})"))
         c += m
     stage1 = ["ts = t"] + output_pass(xn) + guards
+    stage1_record = ["ts = t"] + output_pass(xn, record=True) + guards
     function("def first(t):", stage1 + derivative_pass(xn, 0))
-    function("def first_record(t, row):", stage1 + record + derivative_pass(xn, 0))
+    function("def first_record(t, row):", stage1_record + record + derivative_pass(xn, 0))
     def stage_state(coeffs, scale: str) -> list:
         """x_i = x_n + sum_j (scale a_ij) k_j, summed in the reference stepper's order."""
         if not coeffs:
@@ -373,14 +402,15 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
         rest.extend(derivative_pass(X, s))
     rest.extend(update(final_coeffs, ""))
     function("def rest(t):", rest)
-    function("def final(t, row):", stage1 + record)
+    function("def final(t, row):", stage1_record + record)
     # the same stage 1 at an explicit stage time, and a step of any size h whose stage
     # times are clamped to [lo, hi]: for steps that start or end at a discontinuity
     # (fwdstep.run.events); the steps above are untouched, so runs without events stay the same
-    stage1_ts = stage1[1:]
+    stage1_ts, stage1_record_ts = stage1[1:], stage1_record[1:]
     function("def first_ts(ts):", stage1_ts + derivative_pass(xn, 0))
-    function("def first_record_ts(t, ts, row):", stage1_ts + record + derivative_pass(xn, 0))
-    function("def final_ts(t, ts, row):", stage1_ts + record)
+    function("def first_record_ts(t, ts, row):", stage1_record_ts + record
+             + derivative_pass(xn, 0))
+    function("def final_ts(t, ts, row):", stage1_record_ts + record)
     rest_h = []
     for s, (c, row_a) in enumerate(zip(tab.c[1:], tab.a[1:]), start=1):
         rest_h.extend(stage_state([(j, a) for j, a in enumerate(row_a) if a != 0.0], "h * "))
@@ -460,6 +490,30 @@ class _GroupBuffers:
             lines.append(f"matmul({src.const('V', self.V[:, None, :])}, {src.const('M', M)}, "
                          f"out={src.const('Y', out[:, None, :])})")
         return lines
+
+
+def _needed_signals(d, sampled: tuple, crossings: tuple) -> tuple:
+    """(the signals a stage that records nothing needs, ids of the Steps that compute them):
+    the inputs of every stateful block (its derivative reads them), of the zero-crossing
+    guards and the ``sampled`` signals, and, transitively, the inputs of the blocks producing
+    any of those.  Stateful blocks and blocks without outputs always run (their output call
+    is where a block may stop a run); a stateless block producing none of these is needed
+    only for a record (the log and ``fwdstep.run.finite``'s probe read every output)."""
+    needed = set(sampled)
+    for st in list(d.stateful) + list(crossings):
+        needed.update(st.inputs)
+    live: set = set()
+    changed = True
+    while changed:                  # a non-feedthrough input may come from later in the order
+        changed = False
+        for st in reversed(d.schedule):
+            if id(st) in live:
+                continue
+            if st.state is not None or not st.outputs or needed.intersection(st.outputs):
+                live.add(id(st))
+                needed.update(st.inputs)
+                changed = True
+    return needed, live
 
 
 @functools.lru_cache(maxsize=64)

@@ -85,7 +85,8 @@ def test_numba_twins_equal_the_numpy_helpers(name, args, ref):
     np.testing.assert_allclose(got, getattr(ko, name)(*args), rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("n,m", [(2, 4), (2, 2), (3, 3), (1, 32), (6, 7)])
+@pytest.mark.parametrize("n,m", [(2, 4), (2, 2), (3, 3), (1, 32), (6, 7), (7, 43),
+                                 (43, 7), (12, 60)])
 def test_a_variant_in_a_batch_gets_the_bits_of_its_run_alone(n, m):
     """Sweeps promise each variant equals its own run; a diverging variant amplifies any
     rounding difference, so the products must not depend on the batch size."""

@@ -100,3 +100,48 @@ def test_a_variant_in_a_batch_has_the_bits_of_its_run_alone():
         for name in d.logged:
             mine = np.ascontiguousarray(batch[name][:, b])
             assert mine.tobytes() == one[name].reshape(mine.shape).tobytes(), (b, name)
+
+
+LOG_ONLY = """
+blocks:
+  src: {type: Sine, amplitude: 1.0, frequency: 1.0}
+  x:   {type: Integrator}
+  sat: {type: Saturation, lower: -1.0, upper: 0.5}
+  err: {type: Sum, signs: "+-"}
+connections:
+  - src.y -> x.u, err.u2
+  - x.y -> sat.u, err.u1
+simulation: {t_final: 2.0, step: 0.001, solver: rk4, log_every: 10}
+log: [x.y, sat.y, err.y]
+"""
+
+
+def test_a_block_only_the_log_reads_runs_at_the_records_only(tmp_path, monkeypatch):
+    """``sat`` and ``err`` feed nothing but the log: the stages that record nothing do not
+    call them (nor bind their outputs), the recorded stages do, and the logged values are
+    the analytic ones (x = 1 - cos t, sat = min(x, 0.5), err = x - sin t)."""
+    path = tmp_path / "log_only.yaml"
+    path.write_text(LOG_ONLY)
+    seen = []
+    build = program.build_program
+
+    def spy(*args, **kwargs):
+        prog = build(*args, **kwargs)
+        seen.append(prog.source)
+        return prog
+    monkeypatch.setattr(sys.modules["fwdstep.run.numpy_backend"], "build_program", spy)
+    result = fwdstep.simulate(fwdstep.load_diagram(str(path)))
+    functions = {f.split("(", 1)[0]: f for f in seen[0].split("def ")[1:]}
+    d = fwdstep.load_diagram(str(path))
+    sat = d.signal_index["sat.y"]
+    err = d.signal_index["err.y"]
+    for idx in (sat, err):
+        for fn in ("first", "rest", "first_ts", "rest_h"):
+            assert f"s{idx} =" not in functions[fn], fn
+        for fn in ("first_record", "final", "first_record_ts", "final_ts"):
+            assert f"s{idx} =" in functions[fn], fn
+    t = result.t
+    x = 1.0 - np.cos(t)
+    np.testing.assert_allclose(np.ravel(result["x.y"]), x, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.ravel(result["sat.y"]), np.minimum(x, 0.5), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.ravel(result["err.y"]), x - np.sin(t), rtol=0, atol=1e-10)
