@@ -559,7 +559,7 @@ def before_after_figure(prob: _Problem, result: TuneResult, path: str) -> str:
             if s == sig and fn == "max_abs":
                 ax.axhline(b, color="tab:red", lw=0.8, ls=":")
                 ax.axhline(-b, color="tab:red", lw=0.8, ls=":")
-                handles.append(_line("tab:red", ":", f"|{sig}| <= {b:g}"))
+                handles.append(_line("tab:red", ":", f"|{info.label if info else sig}| <= {b:g}"))
         ax.set_ylabel(info.axis_label() if info is not None else sig)
         ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         ax.grid(True, lw=0.3)
