@@ -359,3 +359,39 @@ simulation: {t_final: 4.9, step: 0.05, solver: rk4, log_every: 2}
     # the Friction's held sign sticks at v = 0 near t = 4.05 s (stiction)
     assert {e.block for e in r.events if e.kind == "chattering"} == (
         {"fr", "relay"} if chatter else {"fr"})
+
+
+def test_clip_ball_projection_and_a_plugin_guard(tmp_path):
+    """Clip (limits as signals), AdaptationLaw's ball projection and the documented
+    CrossingCounter plugin (examples/plugins): traced, the NumPy path's numbers."""
+    import os
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    r = _both(tmp_path, SAT.replace("{type: Saturation, lower: -1.0, upper: U}",
+                                    "{type: Clip, symmetric: true}\n  lim: {type: Constant, "
+                                    "value: 1.0}").replace("connections:",
+                                                           "connections:\n  - lim.y -> sat.limit"))
+    assert abs(r.events[0].time - 2.37) < 1e-12
+    _both(tmp_path, """
+blocks:
+  W:  {type: Constant, value: [[1.0, 0.5]]}
+  e:  {type: Step, before: [-1.0], after: [1.0], time: 1.0}
+  th: {type: AdaptationLaw, regressor_shape: [1, 2], gamma: 2.0, theta0: 0.0, radius: 0.5}
+connections:
+  - W.y -> th.W
+  - e.y -> th.e
+simulation: {t_final: 1.5, step: 0.03, solver: rk4}
+""")
+    path = tmp_path / "count.yaml"
+    path.write_text("""
+blocks:
+  s: {type: Sine, amplitude: 1.0, frequency: 1.0}
+  c: {type: CrossingCounter}
+connections:
+  - s.y -> c.u
+simulation: {t_final: 14.0, step: 0.1, solver: rk4}
+""")
+    counter = os.path.join(root, "examples", "plugins", "crossing_counter.py")
+    c, n = (fwdstep.simulate(fwdstep.load_diagram(str(path), plugins=[counter]), backend=b)
+            for b in ("compiled", "numpy"))
+    _same(c, n)
+    np.testing.assert_allclose([e.time for e in c.events], np.pi * np.arange(1, 5), atol=1e-12)
