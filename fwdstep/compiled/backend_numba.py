@@ -45,6 +45,11 @@ Declared discontinuity times: the loop reads the NumPy path's plan (``fwdstep.ru
 arrays (``event_arrays``) and runs a split step's sub-steps as ``fwdstep.run.program``'s
 ``rest_h`` does; before a sub-step whose discrete blocks update it returns (status 3) and
 the caller applies ``fwdstep.run.events.apply_updates`` (docs/discrete-time.md).
+
+Zero crossings (scalar stages): the stage evaluates the blocks' guards at every stage 1 and
+compares their signs with the previous step's; the loop returns a step where one changed
+(status 4, the state back at its start) and ``fwdstep.compiled.driver`` takes it with
+``fwdstep.run.crossings`` (``_guard_check``).
 """
 from __future__ import annotations
 

@@ -2,7 +2,8 @@
 
 ``fwdstep.run.simulate`` loads this module by name when a run asks for ``backend: compiled``
 (the run layer never imports the compiled layer); divergence, interrupts and the final record
-are ``fwdstep.run.outcome``'s.
+are ``fwdstep.run.outcome``'s.  Zero crossings are watched by the compiled loop and located
+by ``fwdstep.run.crossings`` (one step on the NumPy path each time one happens).
 """
 from __future__ import annotations
 
@@ -51,7 +52,9 @@ class CompiledBackend(Backend):
     procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
     (``plan_events``); discrete updates are applied here, between the chunks the loop ends
     at them (status 3, ``backend_numba.event_arrays``).  A batch runs its variants in
-    parallel, each on its own row of the state, each stopping where it fails.  ``stage``:
+    parallel, each on its own row of the state, each stopping where it fails.  Zero
+    crossings: the loop returns each step that crosses (status 4), which the NumPy path's
+    locating code takes (``_advance_watched``).  ``stage``:
     a scalar stage integrating more than x (``backend_numba.build_program``); ``x`` is then
     the view of the diagram's entries of the integrated state ``prog.xn``."""
 
@@ -143,7 +146,7 @@ class CompiledBackend(Backend):
                 codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
             else:                             # variants in parallel (numba prange)
                 if self.watched:
-                    kept = (x.copy(), rows.copy(), *(a.copy() for a in prog.guards))
+                    kept = (prog.xn.copy(), rows.copy(), *(a.copy() for a in prog.guards))
                 prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
             four = (codes == 4) & alive
             if four.any():                    # a step to take on the NumPy path
@@ -151,7 +154,7 @@ class CompiledBackend(Backend):
                 if B > 1 and ((n_next > m) & alive).any():
                     # others ran past it: every variant again from n to m (the same
                     # numbers; a failure after m is not one yet)
-                    x[...], rows[...] = kept[0], kept[1]
+                    prog.xn[...], rows[...] = kept[0], kept[1]
                     for a, b in zip(prog.guards, kept[2:]):
                         a[...] = b
                     prog.run_batch(n, m, rows, codes, n_next, alive.copy())
