@@ -47,6 +47,10 @@ def numpy_instead(d: CompiledDiagram) -> str | None:
     return reason
 
 
+#: the shortest chunk of a batch whose crossings come close together
+MIN_SPAN = 16
+
+
 class CompiledBackend(Backend):
     """The numba backend of the run loop (``fwdstep.run.simulate.run``): the same
     procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
@@ -92,6 +96,7 @@ class CompiledBackend(Backend):
         # touch a declared time) to the NumPy path's machinery, which takes them (one
         # definition of locating: fwdstep.run.crossings); ``whole``: every step there
         self.watched, self._numpy, self.whole = bool(crossing_steps(d)), None, False
+        self.span = backend_numba.CHUNK       # steps of a batch's next chunk (watched)
         if self.watched and prog.guards is None:      # (an LLVM fault left the array code)
             self.whole = True
             self.t_log, self.logs = self.numpy.t_log, self.numpy.logs
@@ -202,8 +207,14 @@ class CompiledBackend(Backend):
         from the chunk's start to m (the same numbers), and step m is taken for all."""
         alive = out.alive
         n0 = self.position
-        if not self._advance(out, n0, min(n0 + self.numba.CHUNK, self.n_steps)):
+        span = self.span if self.d.batch > 1 else self.numba.CHUNK
+        if not self._advance(out, n0, min(n0 + span, self.n_steps)):
             return
+        # a batch's chunk follows the crossings' pace: the steps run past the earliest
+        # crossing are run again, so at most about the distance between crossings
+        m = self.cross_at
+        self.span = (min(2 * span, self.numba.CHUNK) if m is None
+                     else max(MIN_SPAN, 2 * (m - n0 + 1)))
         row = int(self.rows[alive].max())
         if not alive.all():                   # a variant failed: the NumPy path goes on
             self._to_numpy(out, self.position, row)
