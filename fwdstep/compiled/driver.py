@@ -255,6 +255,14 @@ class CompiledBackend(Backend):
         alive = out.alive
         if not keep:
             nb.x[...] = self.x
+            special = self.plan.steps if self.plan is not None else {}
+            _, XS, GI = self.prog.guards
+            if position in special and (GI[alive, 0] == 1).all():
+                # it starts one step earlier (kept by the loop: XS, its row), so that
+                # step's end leaves the signs the declared time's jumps are checked with
+                position -= 1
+                nb.x[alive] = XS[alive, :self.d.n_states]
+                row = int(GI[alive, 1].max())
             _copy_rows(self, nb, 0, row)
             nb.position, nb.row, nb.fresh = position, row, None
         else:

@@ -395,3 +395,32 @@ simulation: {t_final: 14.0, step: 0.1, solver: rk4}
             for b in ("compiled", "numpy"))
     _same(c, n)
     np.testing.assert_allclose([e.time for e in c.events], np.pi * np.arange(1, 5), atol=1e-12)
+
+
+def test_failed_variant_at_a_chunk_ending_on_a_declared_time(tmp_path, monkeypatch):
+    """A variant diverges (1.3 s) in the chunk that ends on the step split at the Step's
+    1.6 s (step 31, chunks of 31): the NumPy path goes on from there and sees the Relay's
+    guard jump at 1.6 s (the signs at the end of the step before, as its own run has
+    them)."""
+    from fwdstep.compiled import backend_numba
+    monkeypatch.setattr(backend_numba, "CHUNK", 31)
+    text = DIVERGING.replace("  a:   {type: Gain, gain: A}", """  a:   {type: Gain, gain: A}
+  st:  {type: Step, time: 1.6, before: 0.0, after: -5.0}
+  add: {type: Sum, signs: "++"}
+  relay: {type: Relay, on_threshold: 1.0, off_threshold: -1.0}""").replace(
+        "  - j.y -> a.u", """  - j.y -> a.u
+  - i.y -> add.u1
+  - st.y -> add.u2
+  - add.y -> relay.u""")
+    path = tmp_path / "b.yaml"
+    path.write_text(text)
+    specs = [load_spec(str(path), {"A": a}) for a in (0.0, 14.0)]
+    c, n = (_run_or_failed(fwdstep.compile_batch(specs), b) for b in ("compiled", "numpy"))
+    assert c.status == n.status == "partially diverged"
+    for name in n.names:
+        np.testing.assert_allclose(c[name], n[name], rtol=0, atol=1e-12, err_msg=name)
+    ev = [(e.block, e.kind, e.variant) for e in n.events]
+    assert [(e.block, e.kind, e.variant) for e in c.events] == ev
+    assert ("relay", "switch falling", 0) in ev
+    np.testing.assert_allclose([e.time for e in c.events], [e.time for e in n.events],
+                               atol=1e-12)
