@@ -227,14 +227,17 @@ _target = []
 
 
 def _target_machine():
+    """A new target machine for one stage's engine: ``llvm.create_mcjit_compiler`` makes
+    the engine its owner, so it is deleted with the engine (one machine shared by every
+    stage dangled once the first engine was freed: a segfault in the next compile)."""
     if not _target:
         llvm.initialize_native_target()
         llvm.initialize_native_asmprinter()
-        target = llvm.Target.from_default_triple()
-        _target.append(target.create_target_machine(
-            cpu=llvm.get_host_cpu_name(), features=llvm.get_host_cpu_features().flatten(),
-            opt=2, codemodel="jitdefault"))
-    return _target[0]
+        _target.append((llvm.Target.from_default_triple(), llvm.get_host_cpu_name(),
+                        llvm.get_host_cpu_features().flatten()))
+    target, cpu, features = _target[0]
+    return target.create_target_machine(cpu=cpu, features=features, opt=2,
+                                        codemodel="jitdefault")
 
 
 def compile_stage(st, before=None) -> CompiledStage:
