@@ -45,6 +45,11 @@ Declared discontinuity times: the loop reads the NumPy path's plan (``fwdstep.ru
 arrays (``event_arrays``) and runs a split step's sub-steps as ``fwdstep.run.program``'s
 ``rest_h`` does; before a sub-step whose discrete blocks update it returns (status 3) and
 the caller applies ``fwdstep.run.events.apply_updates`` (docs/discrete-time.md).
+
+Zero crossings (scalar stages): the stage evaluates the blocks' guards at every stage 1 and
+compares their signs with the previous step's; the loop returns a step where one changed
+(status 4, the state back at its start) and ``fwdstep.compiled.driver`` takes it with
+``fwdstep.run.crossings`` (``_guard_check``).
 """
 from __future__ import annotations
 
@@ -56,6 +61,7 @@ import math
 import os
 import sys
 import types
+import weakref
 
 import numpy as np
 from numba import njit
@@ -69,6 +75,7 @@ from fwdstep.core import kernelops
 from fwdstep.core.errors import ConfigError
 from fwdstep.core.linear import plan_fusion
 from fwdstep.core.solvers import TABLEAUX, step_plan
+from fwdstep.run.crossings import crossing_steps
 
 #: Steps per call of the compiled loop (Ctrl-C and progress are handled between calls).
 CHUNK = 2000
@@ -526,8 +533,11 @@ class _ScalarStage:
     solver and cached) calls through a function pointer.  The function works in a variant's
     workspace ``ws`` = [x_i (N), k_1..k_S (S N), the variant's row of ``W`` (every parameter
     entry is a column of W), Z (the nodes that depend on parameters only, computed once per
-    call of the loop: mode 3)]; logged signals are columns of one array ``LL`` (rows,
-    variants, columns) whose slices are the logs."""
+    call of the loop: mode 3), G (the zero-crossing guards, ``Block.zero_crossings``, written
+    by every stage 1 that makes derivatives)]; logged signals are columns of one array ``LL``
+    (rows, variants, columns) whose slices are the logs.  The guards are traced like every
+    kernel, from the blocks' own ``zero_crossings`` (or their declared guard kernel), so
+    the compiled loop compares the same numbers as ``fwdstep.run.crossings``."""
 
     def __init__(self, d, shapes, ops, fused, consts, logs, unlogged, n_stages):
         self.columns: list = []         # the values of W's columns over the variants
@@ -649,13 +659,20 @@ class _ScalarStage:
         self.der = der
         self._extend(x, sig, logs, shapes, roots)
         der = self.der
+        # the guards at stage 1, from the signals of the output pass
+        self.guards = []
+        for step in crossing_steps(d):
+            self.guards += list(self._guards(rb, step, ts, state(step), [
+                sig[u] for u in step.inputs]).reshape(-1))
         need_d = tr.needed([node for _, node in der])
         need_r = tr.needed(roots) - need_d
-        inv = sorted(n for n in need_d | need_r if tr.nodes[n].invariant)
+        need_g = tr.needed(self.guards) - need_d
+        inv = sorted(n for n in need_d | need_r | need_g if tr.nodes[n].invariant)
         self.inv, self.n_invariants = inv, len(inv)
         self.need_d = sorted(need_d - set(inv))
         self.need_r = sorted(need_r - set(inv))
-        self.n_nodes = len(need_d | need_r)
+        self.need_g = sorted(need_g - set(inv))
+        self.n_nodes = len(need_d | need_r | need_g)
         W = np.empty((max([len(c) for c in self.columns] + [1]), len(self.columns)))
         for j, c in enumerate(self.columns):
             W[:, j] = c
@@ -665,6 +682,30 @@ class _ScalarStage:
         self.n_columns = len(self.columns)
         self.ow = self.n_states + n_stages * self.n_states
         self.oz = self.ow + self.n_columns
+        self.og = self.oz + self.n_invariants
+        self.n_guards = len(self.guards)
+
+    def _guards(self, rb, step, ts, x, inputs) -> np.ndarray:
+        """Block ``step.block``'s guards (1, n_crossings) as nodes: its declared guard
+        kernel, or its ``zero_crossings`` method run with ``self.p`` read as parameter
+        leaves (each variant's values, as the kernels' parameters are)."""
+        blk = step.block
+        m = blk.n_crossings
+        ck = getattr(blk, "crossing_kernel", None)
+        if ck is not None and "zero_crossings" not in vars(type(blk)) \
+                and "zero_crossings" not in blk.__dict__:      # (as fwdstep.run.program)
+            out = sz.as_nodes(self.tr, 0.0, (1, m)).copy().view(sz.SymArray)
+            sz.run_traced(rb, ck[0], out, ts, x, *inputs,
+                          *(self._param(getattr(blk.p, n)) for n in ck[1]))
+            return out
+        if "zero_crossings" in blk.__dict__:
+            raise sz.Untraceable(f"block {blk.name!r}: zero_crossings set on the instance")
+        proxy = _TracedParams(blk, self._param, rb)
+        r = sz.run_traced(rb, type(blk).zero_crossings, proxy, ts, x, tuple(inputs))
+        r = np.asarray(r, dtype=object)
+        while r.ndim > 2 and r.shape[0] == 1:   # leading ones: dropped, as the NumPy
+            r = r[0]                            # path's assignment into its G drops them
+        return sz.as_nodes(self.tr, r, (1, m))
 
     # hooks of a stage that integrates more than the diagram's state (the variational
     # equations of fwdstep.analysis.compiled_sensitivity); here: the diagram's stage
@@ -720,6 +761,35 @@ class _ScalarStage:
         return out
 
 
+class _TracedParams:
+    """A block seen by its traced ``zero_crossings``: ``p.<name>`` are parameter leaves
+    (``_ScalarStage._param``), its methods traced on this view too, every other attribute
+    the block's own (a constant of the structure)."""
+
+    def __init__(self, block, param, rebinder):
+        self._block, self._rebinder = block, rebinder
+        self.p = _LazyParams(block.p, param)
+
+    def __getattr__(self, name):
+        fn = getattr(type(self._block), name, None)
+        if isinstance(fn, types.FunctionType):
+            return types.MethodType(self._rebinder.function(fn), self)
+        return getattr(self._block, name)
+
+
+class _LazyParams:
+    """``block.p`` with each array read as leaves on first use (unused ones add no column)."""
+
+    def __init__(self, p, param):
+        self._p, self._param, self._done = p, param, {}
+
+    def __getattr__(self, name):
+        if name not in self._done:
+            value = getattr(self._p, name)
+            self._done[name] = self._param(value) if isinstance(value, np.ndarray) else value
+        return self._done[name]
+
+
 #: Diagrams with more parameter entries than this keep the array code (their scalar code
 #: would be long to compile).
 MAX_SCALAR_PARAMS = 4096
@@ -741,6 +811,24 @@ def _ops_for(schedule, shapes, consts):
                 continue
         out.append((kind, op, plan))
     return out, fused
+
+
+_last_ops: dict = {}
+
+
+def _diagram_ops(d, keep: bool = False) -> tuple:
+    """(shapes, ops, fused) of diagram ``d``.  ``keep``: for the next call, which takes it
+    (``simulate`` asks twice per run: whether the guards trace, then to build the program;
+    nothing changes the diagram in between, while a later run may have changed its
+    parameters, hence its fused matrices)."""
+    got = _last_ops.pop("last", None)
+    if got is not None and got[0]() is d:
+        return got[1]
+    shapes = [tuple(s) for s in d.signal_shapes]
+    ops, fused = _ops_for(d.schedule, shapes, d.constant_signals)
+    if keep:
+        _last_ops["last"] = (weakref.ref(d), (shapes, ops, fused))
+    return shapes, ops, fused
 
 
 def check_compilable(d) -> None:
@@ -769,6 +857,7 @@ class CompiledProgram:
         self.events, self.row_events = events
         self._sealed = False
         self.python = None          # fwdstep.run.python_blocks entry of object-mode blocks
+        self.guards = None          # (GP, XS, GI): the zero-crossing check's (_guard_check)
 
     def _first_call_sealed(self) -> None:
         """Seal right after the call that compiled (not only at the end of the run), so
@@ -784,7 +873,9 @@ class CompiledProgram:
 
     def run(self, n0: int, n1: int, row: int) -> tuple:
         """Variant 0, steps n0..n1-1: (status 0 ok / 1 diverged / 2 an output not finite /
-        3 paused for discrete updates (``event_arrays``), next step, next row)."""
+        3 paused for discrete updates (``event_arrays``) / 4 a step to take on the NumPy
+        path (a zero crossing in it, or it touches a declared time: ``_guard_check``), next
+        step, next row)."""
         out = self.module.run_one(0, n0, n1, row, False, *self._fixed(), *self.args,
                                   *self.call_logs)
         self._first_call_sealed()
@@ -865,6 +956,16 @@ def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
         for name in (k.params if k is not None else ()):
             arr = np.ascontiguousarray(getattr(blk.p, name), dtype=float)
             h.update(repr(arr.shape).encode() + arr.data)
+    for step in crossing_steps(d):       # the guards: their functions and parameters
+        blk = step.block
+        ck = getattr(blk, "crossing_kernel", None)
+        h.update(repr(("z", blk.name, type(blk).__qualname__, blk.n_crossings,
+                       None if ck is None else (id(ck[0]), ck[1]), step.inputs,
+                       step.state)).encode())
+        for name, arr in sorted(vars(blk.p).items()):
+            if isinstance(arr, np.ndarray):
+                a = np.ascontiguousarray(arr, dtype=float)
+                h.update(repr((name, a.shape)).encode() + a.data)
     key = h.digest()
     if key not in _traced:
         try:
@@ -943,6 +1044,23 @@ def object_mode_only(d) -> str | None:
             f"{names} through numba's object mode")
 
 
+def guards_unwatched(d) -> str | None:
+    """Why the compiled loop cannot watch the zero crossings of ``d`` (they are watched in
+    scalar stages only: ``_ScalarStage`` traces the guards), or None."""
+    if d.sizes_at_run_time:
+        return ("its zero crossings are watched in scalar code only, and its variants "
+                "differ in sizes")
+    shapes, ops, fused = _diagram_ops(d, keep=True)
+    from fwdstep.run.finite import unlogged_signals
+    logged = [d.signal_index[name] for name in d.logged]
+    S = TABLEAUX[d.spec.simulation.solver].stages
+    with _per_variant_kernels(d):
+        if _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) is not None:
+            return None
+    return ("its zero crossings are watched in scalar code only, and its stage (or a "
+            "block's zero_crossings) does not trace into it")
+
+
 def build_program(d, n_rows: int, plan=None, scalar: bool | None = None,
                   notify=None, stage=None) -> CompiledProgram:
     """Generate, load (from the cache when possible) and bind the compiled run of ``d``;
@@ -994,8 +1112,7 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
     tab = TABLEAUX[cfg.solver]
     stages, final_coeffs = step_plan(tab, cfg.step)
     B, N, S = d.batch, d.n_states, tab.stages
-    shapes = [tuple(s) for s in d.signal_shapes]
-    ops, fused = _ops_for(d.schedule, shapes, d.constant_signals)
+    shapes, ops, fused = _diagram_ops(d)
     from fwdstep.run.finite import unlogged_signals      # every other output: finite, or status 2
     logged = [d.signal_index[name] for name in d.logged]
     if stage is not None:
@@ -1004,6 +1121,7 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
         st = _scalar_stage(d, shapes, ops, fused, logged, unlogged_signals(d), S) if scalar \
             else None
     stage_fn = None
+    guard_arrays = None
     final = "xv[i]"
     for m, (j, _) in enumerate(final_coeffs):
         final = f"({final} + bw[{m}] * K2[{j}, i])"
@@ -1012,12 +1130,19 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
         from fwdstep.compiled.llvm_stage import compile_stage
         # the loop (fixed text: compiled once per machine and solver, then cached) calls
         # the stage (compiled per structure) through a function pointer
-        record = [f"if {call.format('2 if final else 1')} != 0: return 2, n, row + 1"]
-        stage_der = ["if not (stg == 0 and q == q0 and (n % every == 0 or final)):",
-                     "    " + call.format("0")]
+        if st.n_guards:     # the stage's status: 4 when a guard changed sign (_guard_check)
+            record = [f"cs = {call.format('2 if final else 1')}",
+                      "if cs == 2: return 2, n, row + 1"]
+            stage_der = ["if not (stg == 0 and q == q0 and (n % every == 0 or final)):",
+                         "    cs = " + call.format("0")]
+        else:
+            record = [f"if {call.format('2 if final else 1')} != 0: return 2, n, row + 1"]
+            stage_der = ["if not (stg == 0 and q == q0 and (n % every == 0 or final)):",
+                         "    " + call.format("0")]
         gen = _Gen()
         skeleton = compiled_cache.load(_module_source(gen, None, [], record, [], stage_der,
-                                                      final, stage is not None))
+                                                      final, stage is not None,
+                                                      guards=bool(st.n_guards)))
         loop_new = not compiled_cache.compiled_before(skeleton)
 
         def announce():
@@ -1048,6 +1173,10 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
             assert np.shares_memory(view, LL)
             logs.append(view)
         args, call_logs = [st.W, st.n_invariants, LL.shape[2]], [LL.reshape(-1)]
+        if st.n_guards:                 # the guards' reference values (_guard_check)
+            guard_arrays = (np.zeros((B, st.n_guards)), np.zeros((B, N)),
+                            np.zeros((B, 2), dtype=np.int64))
+            call_logs += list(guard_arrays)
     else:
         logs = [np.full((n_rows, B) + shapes[idx], np.nan) for idx in logged]
         log_names = [f"L{k}" for k in range(len(logs))]
@@ -1084,6 +1213,8 @@ def _build_program(d, n_rows: int, plan, scalar: bool, notify=None,
     K = np.zeros((B, S, N))
     prog = CompiledProgram(module, args, xn, X, K, logs, np.full(n_rows, np.nan), consts, B,
                            event_arrays(plan, cfg.n_steps, cfg.step, B), call_logs)
+    # (GP, XS, GI) of _guard_check when the loop watches zero crossings, else None
+    prog.guards = guard_arrays
     if gen.python:                  # blocks called in object mode: the program's handle
         from fwdstep.run import python_blocks
         handle, prog.python = python_blocks.register(prog, gen.python, B)
@@ -1130,9 +1261,11 @@ _PYTHON_HEADER = ("from numba import objmode as _objmode",
 
 
 def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
-                   bound_first: bool = False) -> str:
+                   bound_first: bool = False, guards: bool = False) -> str:
     """The text of the generated loop module; ``bound_first``: only the first I[0] entries
-    of the state are checked against the bound (a stage given to ``build_program``)."""
+    of the state are checked against the bound (a stage given to ``build_program``);
+    ``guards`` (scalar stages only): the loop of a diagram with zero crossings
+    (``_guard_check``)."""
     arg_names = [n for n, _ in gen.args]
     a_list = "".join(", " + n for n in arg_names + log_names)
     fixed = "h, every, bound, a, c, b, xn, X, K, t_log, I, A, C, B, ev_n, ev_off, ev_t, ev_r"
@@ -1143,9 +1276,12 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
         # stage comes in as a function pointer, its numbers in W (variant v's row), its
         # parameter-only nodes in Z, its records in LL
         fn_arg = "stage, "
-        a_list = ", W, nZ, width, LL"
+        a_list = ", W, nZ, width, LL" + (", GP, XS, GI" if guards else "")
         prologue = ["S = a.shape[0]", "NW = W.shape[1]",
-                    "ws = np.empty(N + S * N + NW + nZ)",
+                    *(["og = N + S * N + NW + nZ", "nG = GP.shape[1]", "GPv = GP[v]",
+                       "XSv = XS[v]", "gok = GI[v, 0]", "rsave = GI[v, 1]", "cs = 0",
+                       "ws = np.empty(og + nG)"] if guards else
+                      ["ws = np.empty(N + S * N + NW + nZ)"]),
                     # (not W[v if ... else 0]: prange's v is unsigned, and numba unifies
                     # uint64 with int64 to float64)
                     "Wv = W[0] if W.shape[0] == 1 else W[v]",
@@ -1153,7 +1289,8 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
                     "vi = np.int64(v)", "B_ = np.int64(xn.shape[0])",
                     "wsp = ws.ctypes.data", "Lp = LL.ctypes.data",
                     "stage(3, 0.0, 0, 0, wsp, Lp)",
-                    "Xv = ws[0:N]", "K2 = ws[N:N + S * N].reshape((S, N))"]
+                    "Xv = ws[0:N]", "K2 = ws[N:N + S * N].reshape((S, N))",
+                    *(["for j in range(nG):", "    ws[og + j] = GPv[j]"] if guards else [])]
         out = ["# fwdstep compiled loop of scalar stages (generated; see "
                "fwdstep/compiled/backend_numba.py)", f"# numba {numba.__version__}",
                "import math", "import numpy as np", "from numba import njit, prange",
@@ -1197,6 +1334,15 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
         "        p += 1",
         "    ta, hs, lo, hi = t, h, -math.inf, math.inf",
         "    bad = False",
+        *(["    r0 = row",
+           # a step at a declared time: the Python driver's (fwdstep.run.crossings), after
+           # it retook the step before (its end checks jumps there)
+           "    if split and not final:",
+           "        GI[v, 0] = 0",
+           "        if gok == 1:",
+           "            for i in range(N):", "                xv[i] = XSv[i]",
+           "            return 4, n - 1, rsave",
+           "        return 4, n, row"] if guards else []),
         "    qs = q0",                    # resuming at the row whose updates were applied
         "    if split and ev_r[v] >= q0 and ev_r[v] < q1:",
         "        qs = ev_r[v]",
@@ -1222,12 +1368,21 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
     stage += ["if stg == 0 and q == q0 and (n % every == 0 or final):", "    t_log[row] = t"]
     stage += ["    " + r for r in record] + ["    row += 1", "    if final:",
                                                 "        return 0, n, row"] + stage_der
+    if guards:                  # stage 1 compared the guards with the last step's start
+        stage += ["if stg == 0:"] + ["    " + line for line in _guard_check("n", "r0")]
     inner = sub + ["for stg in range(a.shape[0]):"] + ["    " + line for line in stage]
     inner += ["bad = False", "for i in range(N):", f"    w = {final}", "    xv[i] = w",
               "    if " + ("i < I[0] and " if bound_first else "") + "not (abs(w) <= bound):",
               "        bad = True"]
     run_body += ["    for q in range(qs, q1):"] + ["        " + line for line in inner]
     run_body += ["    if bad:", "        return 1, n + 1, row"]
+    if guards:                  # the last step's end: stage 1 at n1 (made again next call)
+        run_body += ["if not final and n1 > n0 and gok == 1:",
+                     "    for i in range(N):", "        Xv[i] = xv[i]",
+                     "    cs = stage(0, n1 * h, 0, 0, wsp, Lp)"]
+        run_body += ["    " + line for line in _guard_check("n1", None)]
+        run_body += ["if not final:", "    GI[v, 0] = gok", "    GI[v, 1] = rsave",
+                     "    for j in range(nG):", "        GPv[j] = ws[og + j]"]
     run_body.append("return 0, n1, row")
     fn(f"def run_one({fn_arg}v, n0, n1, row, final, {fixed}{a_list}):", run_body, one)
     # with object-mode blocks the variants run one after another: their calls hold the GIL,
@@ -1242,6 +1397,29 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
         "        if st:", "            alive[v] = False"],
        "@njit(cache=CACHE)" if gen.python else "@njit(cache=CACHE, parallel=True)")
     return "\n".join(out) + "\n"
+
+
+#: The zero-crossing part of the loop (``_module_source(guards=True)``).  Every stage 1
+#: that makes derivatives compares the guards' signs with those it wrote at the previous
+#: step's stage 1 (``ws[og:og + nG]``; ``GP`` keeps them between calls), writes the new
+#: ones there and returns 4 when one changed sign and is finite (``fwdstep.run.crossings``'s
+#: test; ``fwdstep.compiled.llvm_stage``).  The loop keeps the state ``XS`` and the row
+#: count ``rsave`` at the start of the last step; ``gok``: they and the guards are valid
+#: (``GI`` between calls; the driver sets 0 when it changed the state).  Status 4 from
+#: stage 1 means the last step crossed: the state goes back to that step's start and the
+#: loop returns status 4 with that step and row; ``fwdstep.compiled.driver`` takes it with
+#: the NumPy path's crossing machinery and resumes the loop after it.
+def _guard_check(n: str, row) -> list:
+    """Lines acting on the status ``cs`` of stage 1 of step ``n`` (4: step n - 1 crossed);
+    then, with ``row`` (this step's first row), this step's start kept."""
+    lines = ["if cs == 4 and gok == 1:",
+             "    for i in range(N):", "        xv[i] = XSv[i]",
+             "    GI[v, 0] = 0",
+             f"    return 4, {n} - 1, rsave"]
+    if row is not None:
+        lines += ["for i in range(N):", "    XSv[i] = xv[i]",
+                  "gok = 1", f"rsave = {row}"]
+    return lines
 
 
 # ---------------------------------------------------------------------------- helpers

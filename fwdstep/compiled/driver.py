@@ -2,7 +2,8 @@
 
 ``fwdstep.run.simulate`` loads this module by name when a run asks for ``backend: compiled``
 (the run layer never imports the compiled layer); divergence, interrupts and the final record
-are ``fwdstep.run.outcome``'s.
+are ``fwdstep.run.outcome``'s.  Zero crossings are watched by the compiled loop and located
+by ``fwdstep.run.crossings`` (one step on the NumPy path each time one happens).
 """
 from __future__ import annotations
 
@@ -13,7 +14,9 @@ import numpy as np
 from fwdstep.core import signals
 from fwdstep.core.errors import ConfigError
 from fwdstep.run import finite
+from fwdstep.run import crossings
 from fwdstep.run.backend import Backend
+from fwdstep.run.crossings import crossing_steps
 from fwdstep.run.evaluate import _make_evaluator
 from fwdstep.run.events import apply_updates
 from fwdstep.run.outcome import _divergence_message, _rows_recorded
@@ -38,7 +41,14 @@ def numpy_instead(d: CompiledDiagram) -> str | None:
     if not PICK_NUMPY_FOR_OBJECT_MODE:
         return None
     backend_numba.check_compilable(d)
-    return backend_numba.object_mode_only(d)
+    reason = backend_numba.object_mode_only(d)
+    if reason is None and crossing_steps(d):
+        reason = backend_numba.guards_unwatched(d)
+    return reason
+
+
+#: the shortest chunk of a batch whose crossings come close together
+MIN_SPAN = 16
 
 
 class CompiledBackend(Backend):
@@ -46,7 +56,9 @@ class CompiledBackend(Backend):
     procedure, run in compiled chunks of ``backend_numba.CHUNK`` steps on the same step grid
     (``plan_events``); discrete updates are applied here, between the chunks the loop ends
     at them (status 3, ``backend_numba.event_arrays``).  A batch runs its variants in
-    parallel, each on its own row of the state, each stopping where it fails.  ``stage``:
+    parallel, each on its own row of the state, each stopping where it fails.  Zero
+    crossings: the loop returns each step that crosses (status 4), which the NumPy path's
+    locating code takes (``_advance_watched``).  ``stage``:
     a scalar stage integrating more than x (``backend_numba.build_program``); ``x`` is then
     the view of the diagram's entries of the integrated state ``prog.xn``."""
 
@@ -80,6 +92,23 @@ class CompiledBackend(Backend):
         self.rows, self.codes, self.n_next = (np.zeros(B, dtype=np.int64) for _ in range(3))
         self.position = 0                     # the next step to take
         self.sample = None
+        # zero crossings: the loop watches the guards and returns the steps that cross (or
+        # touch a declared time) to the NumPy path's machinery, which takes them (one
+        # definition of locating: fwdstep.run.crossings); ``whole``: every step there
+        self.watched, self._numpy, self.whole = bool(crossing_steps(d)), None, False
+        self.span = backend_numba.CHUNK       # steps of a batch's next chunk (watched)
+        if self.watched and prog.guards is None:      # (an LLVM fault left the array code)
+            self.whole = True
+            self.t_log, self.logs = self.numpy.t_log, self.numpy.logs
+
+    @property
+    def numpy(self):
+        """The NumPy path's backend that takes the steps which cross (made on first use:
+        a run whose guards never cross does not generate its program)."""
+        if self._numpy is None:
+            from fwdstep.run.numpy_backend import NumpyBackend
+            self._numpy = NumpyBackend(self.d, self.plan)
+        return self._numpy
 
     def start(self, x0) -> None:
         """Compile (the run loop checked every block's shapes on the NumPy path first: a
@@ -92,23 +121,50 @@ class CompiledBackend(Backend):
         if self.announced and self.on_compile is not None:
             self.on_compile("compiled", {"seconds": _time.perf_counter() - self.announced[0]})
         self.x[...] = x0
+        if self.whole:
+            self.numpy.x[...] = x0
         if self.plan is not None and self.plan.discrete:
             self.sample = _sampler(self.d, self.plan, self.x)
 
     def update(self, event, ts: float) -> None:
+        if self.whole:                        # the NumPy path holds the state
+            self.numpy.update(event, ts)
+            return
         apply_updates(event, ts, self.x, self.sample)
 
     def advance(self, out) -> None:
+        if self.whole:
+            return self._numpy_whole(out)
+        if self.watched:
+            return self._advance_watched(out)
+        self._advance(out, self.position, min(self.position + self.numba.CHUNK, self.n_steps))
+
+    def _advance(self, out, n: int, n1: int) -> bool:
+        """The compiled loop from step n to n1 (each variant; status 4: see
+        ``_advance_watched``).  False: the run ended (every variant failed)."""
         prog, x, h, alive = self.prog, self.x, self.h, out.alive
         rows, codes, n_next = self.rows, self.codes, self.n_next
         B = self.d.batch
+        self.cross_at = None
         with signals.held():      # a signal during the chunk ends the run after its rows
-            n = self.position     # are counted (Python raised it the moment the chunk returned)
-            n1 = min(n + self.numba.CHUNK, self.n_steps)
-            if B == 1:
+            if B == 1:            # are counted (Python raised it the moment the chunk returned)
                 codes[0], n_next[0], rows[0] = prog.run(n, n1, int(rows[0]))
             else:                             # variants in parallel (numba prange)
+                if self.watched:
+                    kept = (prog.xn.copy(), rows.copy(), *(a.copy() for a in prog.guards))
                 prog.run_batch(n, n1, rows, codes, n_next, alive.copy())
+            four = (codes == 4) & alive
+            if four.any():                    # a step to take on the NumPy path
+                m = int(n_next[four].min())
+                if B > 1 and ((n_next > m) & alive).any():
+                    # others ran past it: every variant again from n to m (the same
+                    # numbers; a failure after m is not one yet)
+                    prog.xn[...], rows[...] = kept[0], kept[1]
+                    for a, b in zip(prog.guards, kept[2:]):
+                        a[...] = b
+                    prog.run_batch(n, m, rows, codes, n_next, alive.copy())
+                codes[four] = 0
+                n1 = self.cross_at = m
             paused = (codes == 3) & alive     # discrete blocks update before a sub-step:
             if paused.any():                  # all alive variants stop at that row
                 q = int(prog.events[3][np.flatnonzero(paused)[0]])
@@ -134,16 +190,106 @@ class CompiledBackend(Backend):
                     else:
                         out.stop("diverged", _divergence_message(d, x, bound, self.t + h),
                                  blamed=x, time=self.t + h)
-                    return
+                    return False
             self.position = self.n = n1
             self.t = n1 * h
             self.row = int(rows.max())
             self.done = n1 >= self.n_steps
             self.fraction = n1 / max(self.n_steps, 1)
+        return True
+
+    def _advance_watched(self, out) -> None:
+        """A chunk of a diagram with zero crossings: the compiled loop up to the first step
+        that crosses (status 4, the state back at its start), that step on the NumPy path
+        (``fwdstep.run.crossings.advance``: located, ``crossed``, events, Stop, chattering,
+        on the same state and record), then the loop again.  A batch's variants go in
+        step: when one returns a step m the others ran past, every variant runs again
+        from the chunk's start to m (the same numbers), and step m is taken for all."""
+        alive = out.alive
+        n0 = self.position
+        span = self.span if self.d.batch > 1 else self.numba.CHUNK
+        if not self._advance(out, n0, min(n0 + span, self.n_steps)):
+            return
+        # a batch's chunk follows the crossings' pace: the steps run past the earliest
+        # crossing are run again, so at most about the distance between crossings
+        m = self.cross_at
+        self.span = (min(2 * span, self.numba.CHUNK) if m is None
+                     else max(MIN_SPAN, 2 * (m - n0 + 1)))
+        row = int(self.rows[alive].max())
+        if not alive.all():                   # a variant failed: the NumPy path goes on
+            self._to_numpy(out, self.position, row)
+        elif self.cross_at is not None:
+            self._numpy_step(out, self.cross_at, row)
+
+    def _numpy_step(self, out, m: int, row: int) -> None:
+        """Step m (state x_m, its record at ``row``) taken by the NumPy path's crossing
+        machinery; its rows copied into the compiled record; the loop resumes after it."""
+        nb, x = self.numpy, self.x
+        nb.x[...] = x
+        nb.position, nb.row, nb.fresh, nb.chunk = m, row, None, 1
+        crossings.advance(nb, out)
+        _copy_rows(nb, self, row, nb.row)
+        x[...] = nb.x
+        self.n, self.t = m, m * self.h
+        if not out.running:                   # a Stop: its record is the last
+            self.row = nb.row
+            return
+        if not nb.crossings.simple:           # chattering: its regime follows at steps
+            self._to_numpy(out, m + 1, nb.row, keep=True)
+            return
+        # the end pass's record of step m + 1 (if any) is made again by the loop
+        end = nb.row - (1 if nb.fresh is not None and nb.fresh[1] >= 0 else 0)
+        self.rows[out.alive] = end
+        self.row = end
+        self.prog.guards[2][:, 0] = 0         # the loop's reference signs: from m + 1
+        self.position = m + 1
+        self.done = self.position >= self.n_steps
+        self.fraction = self.position / max(self.n_steps, 1)
+
+    def _to_numpy(self, out, position: int, row: int, keep: bool = False) -> None:
+        """From step ``position`` on, the NumPy path runs every step (chattering, or a
+        variant of a batch failed: its crossings then follow ``fwdstep.run.crossings``'s
+        general procedure); the record so far moves to it.  ``keep``: it just took the
+        step before (its end pass stands)."""
+        nb = self.numpy
+        alive = out.alive
+        if not keep:
+            nb.x[...] = self.x
+            special = self.plan.steps if self.plan is not None else {}
+            _, XS, GI = self.prog.guards
+            if position in special and (GI[alive, 0] == 1).all():
+                # it starts one step earlier (kept by the loop: XS, its row), so that
+                # step's end leaves the signs the declared time's jumps are checked with
+                position -= 1
+                nb.x[alive] = XS[alive, :self.d.n_states]
+                row = int(GI[alive, 1].max())
+            _copy_rows(self, nb, 0, row)
+            nb.position, nb.row, nb.fresh = position, row, None
+        else:
+            _copy_rows(self, nb, 0, row)
+        nb.x[~alive] = 0.0
+        nb.crossings.active[~alive] = False
+        if not alive.all():
+            nb.crossings.simple = False
+        nb.chunk = type(nb).chunk
+        self.t_log, self.logs = nb.t_log, nb.logs
+        self.whole = True
+        self.position = position
+        self.done = position >= self.n_steps
+
+    def _numpy_whole(self, out) -> None:
+        nb = self.numpy
+        nb.advance(out)
+        self.row, self.n, self.t = nb.row, nb.n, nb.t
+        self.done, self.fraction = nb.done, nb.fraction
 
     def final_record(self, t: float, ts: float, out) -> None:
         """Each alive variant's outputs at t and their record (the event rows of the
         compiled loop give its stage time ts)."""
+        if self.whole:
+            self.numpy.final_record(t, ts, out)
+            self.row, self.n = self.numpy.row, self.numpy.n
+            return
         d, x, alive = self.d, self.x, out.alive
         last = 0
         for v in np.flatnonzero(alive):
@@ -158,10 +304,21 @@ class CompiledBackend(Backend):
             out.stop("diverged", message, blamed=blamed)
 
     def after_error(self) -> None:
+        if self.whole:
+            self.row = self.numpy.row
+            return
         self.row = _rows_recorded(self.prog.t_log, self.rows, self.row)
 
     def close(self) -> None:
         self.prog.seal()
+
+
+def _copy_rows(src, dst, r0: int, r1: int) -> None:
+    """Rows r0..r1-1 of one backend's record into another's (times and logged signals)."""
+    if r1 > r0:
+        dst.t_log[r0:r1] = src.t_log[r0:r1]
+        for a, b in zip(dst.logs, src.logs):
+            a[r0:r1] = b[r0:r1]
 
 
 def _compile(prog, d: CompiledDiagram) -> None:

@@ -14,6 +14,9 @@ of the one signature ``SIGNATURE``:
 ``ws`` and ``L`` are the addresses of the variant's workspace and of the log array (see
 ``_ScalarStage``); modes 0 derivative, 1 record and derivative, 2 record only, 3 the
 parameter-only nodes into the workspace; status 2 when an unrecorded output is not finite.
+A stage 1 (stg 0) that makes derivatives also compares the zero-crossing guards' signs
+with the ones it left in the workspace (``_ScalarStage.og``), writes the new ones there and
+returns 4 when one changed sign and is finite (when the diagram has guards).
 """
 from __future__ import annotations
 
@@ -178,12 +181,31 @@ def stage_ir(st) -> str:
     for i, node in st.der:
         off = der.emit(f"add i64 {kb}, {i}")
         der.store("%ws", off, der.value(node))
+    guards = []
+    if getattr(st, "n_guards", 0):     # stage 1: the guards, compared and kept
+        der.lines += ["  %isg = icmp eq i64 %stg, 0",
+                      "  br i1 %isg, label %guards, label %dret", "dret:"]
+        g = _Block(em, "guards", main.names)
+        for n in st.need_g:
+            g.define(nodes[n])
+        changed = "false"
+        for k, node in enumerate(st.guards):
+            new = g.value(node)
+            old = g.load("%ws", st.og + k)
+            flip = g.emit(f"xor i1 {g.emit(f'fcmp oge double {new}, {_double(0.0)}')}, "
+                          f"{g.emit(f'fcmp oge double {old}, {_double(0.0)}')}")
+            finite = g.emit(f"fcmp olt double {g.call('llvm.fabs.f64', new)}, {_INF}")
+            changed = g.emit(f"or i1 {changed}, {g.emit(f'and i1 {flip}, {finite}')}")
+            g.store("%ws", st.og + k, new)
+        g.lines.append(f"  %gst = select i1 {changed}, i64 4, i64 0")
+        g.lines.append("  ret i64 %gst")
+        guards = g.lines
     der.lines.append("  ret i64 0")
     decl = [f"declare double @{fn}({', '.join(['double'] * k)})"
             for fn, k in sorted(em.declare)]
     return "\n".join(decl + [
         "define i64 @stage(i64 %mode, double %ts, i64 %stg, i64 %rb, i64 %wsi, i64 %Li) {",
-        *entry.lines, *inv.lines, *main.lines, *rec.lines, *tail, *der.lines, "}", ""])
+        *entry.lines, *inv.lines, *main.lines, *rec.lines, *tail, *der.lines, *guards, "}", ""])
 
 
 class CompiledStage(WrapperAddressProtocol):
@@ -205,14 +227,17 @@ _target = []
 
 
 def _target_machine():
+    """A new target machine for one stage's engine: ``llvm.create_mcjit_compiler`` makes
+    the engine its owner, so it is deleted with the engine (one machine shared by every
+    stage dangled once the first engine was freed: a segfault in the next compile)."""
     if not _target:
         llvm.initialize_native_target()
         llvm.initialize_native_asmprinter()
-        target = llvm.Target.from_default_triple()
-        _target.append(target.create_target_machine(
-            cpu=llvm.get_host_cpu_name(), features=llvm.get_host_cpu_features().flatten(),
-            opt=2, codemodel="jitdefault"))
-    return _target[0]
+        _target.append((llvm.Target.from_default_triple(), llvm.get_host_cpu_name(),
+                        llvm.get_host_cpu_features().flatten()))
+    target, cpu, features = _target[0]
+    return target.create_target_machine(cpu=cpu, features=features, opt=2,
+                                        codemodel="jitdefault")
 
 
 def compile_stage(st, before=None) -> CompiledStage:

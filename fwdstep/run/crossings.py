@@ -80,9 +80,11 @@ def advance(bk, out) -> None:
 
     states = bk.states
 
-    def failed() -> bool:
-        """After a kept record (row - 1): its state (``record_states``) and the unrecorded
-        outputs; True: the run ends."""
+    def failed(ts: float) -> bool:
+        """After a kept record (row - 1) made at stage time ts: its state
+        (``record_states``) and the unrecorded outputs; True: the run ends.  Variants that
+        failed there are frozen (x = 0) and the stage 1 at ts made again for them (the
+        record stands: it is not made twice)."""
         if states is not None:
             states[row - 1] = x
         if check is None:
@@ -93,7 +95,7 @@ def advance(bk, out) -> None:
             x[~alive] = 0.0
             zc.active[~alive] = False
             zc.simple = False
-            bk.fresh = None
+            prog.first_ts(ts)
         return False
     try:
         for n in range(n0, n1):
@@ -109,7 +111,7 @@ def advance(bk, out) -> None:
                     if fresh is None or fresh[0] != t or fresh[1] != row - 1:
                         first_record(t, row)
                         row += 1
-                        if failed():
+                        if failed(t):
                             return
                         np.greater_equal(G, 0.0, out=S0)
                 elif fresh is None or fresh[0] != t:
@@ -149,17 +151,15 @@ def advance(bk, out) -> None:
                     if rec_next:
                         row += 1
                         bk.fresh = (te, row - 1)
-                        if failed():
+                        if failed(te):
                             return
                     else:
                         bk.fresh = (te, -1)
                 if N and not np.abs(x, out=absx).max() <= bound:     # (NaN fails it too)
                     if out.states_diverged(x, t + h):
+                        row = _unrecord(bk, row)
                         return
-                    x[~alive] = 0.0
-                    zc.active[~alive] = False
-                    zc.simple = False
-                    bk.fresh = None
+                    _freeze(bk, alive)
                 continue
             # (sub-)steps (a, b, size, lo, hi, event), sized as the plain loop sizes them
             units = ([(s.a, s.b, s.b - s.a, s.lo, s.hi, s.event) for s in special[n]]
@@ -174,7 +174,7 @@ def advance(bk, out) -> None:
                     if bk.fresh != (ts, row - 1):   # else: the previous end pass recorded
                         prog.first_record_ts(t, ts, row)
                         row += 1
-                        if failed():
+                        if failed(ts):
                             return
                 elif bk.fresh is None or bk.fresh[0] != ts:
                     prog.first_ts(ts)
@@ -200,7 +200,7 @@ def advance(bk, out) -> None:
                 elif rec_next:
                     row += 1
                     bk.fresh = (min(b, hi), row - 1)
-                    if failed():
+                    if failed(min(b, hi)):
                         return
                 else:
                     bk.fresh = (min(b, hi), -1)
@@ -210,16 +210,34 @@ def advance(bk, out) -> None:
             if N:
                 if not np.abs(x).max() <= bound:                 # (NaN fails it too)
                     if out.states_diverged(x, t + h):
+                        row = _unrecord(bk, row)
                         return
-                    x[~alive] = 0.0
-                    zc.active[~alive] = False
-                    zc.simple = False
-                    bk.fresh = None
+                    _freeze(bk, alive)
         bk.position = n1
         bk.done = n1 >= bk.n_steps
         bk.fraction = n1 / max(bk.n_steps, 1)
     finally:
         bk.row, bk.n, bk.t = row, n, t
+
+
+def _unrecord(bk, row: int) -> int:
+    """The run diverged at the end of a step: the end pass's record of that state (the
+    next step's stage 1) is not kept, as the plain procedure never makes it."""
+    if bk.fresh is not None and bk.fresh[1] == row - 1:
+        bk.fresh = None
+        return row - 1
+    return row
+
+
+def _freeze(bk, alive) -> None:
+    """Variants that failed at the end of a step: frozen (x = 0, their guards no longer
+    watched), the stage 1 the next step starts from made again for them; a record made by
+    that stage 1 stands (``fresh`` keeps its row: it is not made twice)."""
+    bk.x[~alive] = 0.0
+    bk.crossings.active[~alive] = False
+    bk.crossings.simple = False
+    if bk.fresh is not None:
+        bk.prog.first_ts(bk.fresh[0])
 
 
 def _stopped(bk, prog, row: int) -> int:

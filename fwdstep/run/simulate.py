@@ -228,11 +228,6 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
     plan = plan_events(d, cfg.step, cfg.n_steps)
     notes = []
     located = crossing_steps(d)
-    if located and name == "compiled" and cfg.solver not in IVP_METHODS:
-        blk = located[0].block
-        notes.append(f"block '{blk.name}' ({blk.type_name}) has zero crossings, which the "
-                     "compiled backend does not locate: this run uses the numpy backend")
-        name = "numpy"
     if cfg.solver in IVP_METHODS:
         from fwdstep.run.ivp import IvpBackend
         stepper = IvpBackend(d, plan)
@@ -248,6 +243,11 @@ def _simulate(d: CompiledDiagram, progress=None, x0: np.ndarray | None = None, *
         else:                                 # compiling cannot help: the NumPy path
             if on_compile is not None:
                 on_compile("numpy", {"reason": reason})
+            if located:                       # (its crossings' numbers are located alike)
+                blk = located[0].block
+                notes.append(f"block '{blk.name}' ({blk.type_name}) has zero crossings; the "
+                             f"compiled backend cannot run this diagram: {reason}; this "
+                             "run uses the numpy backend")
             from fwdstep.run.numpy_backend import NumpyBackend
             name, stepper = "numpy", NumpyBackend(d, plan, fuse=fuse)
     result = run(d, stepper, progress, x0, wall0, notes)

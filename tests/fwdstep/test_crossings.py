@@ -182,12 +182,13 @@ def test_batch_variants_have_their_own_events(tmp_path):
     np.testing.assert_allclose(by[1], [(3.37 - 2.0) / 2.0], atol=1e-12)   # x' = -2 above 2
 
 
-def test_compiled_backend_falls_back_with_a_note(tmp_path):
+def test_compiled_backend_locates_them_too(tmp_path):
+    """(More in test_compiled_crossings.py.)"""
     pytest.importorskip("numba")
     r = _run(tmp_path, SAT.format(upper=1.0, h=0.1), backend="compiled")
     n = _run(tmp_path, SAT.format(upper=1.0, h=0.1))
-    assert len(r.notes) == 1 and "numpy backend" in r.notes[0]
-    np.testing.assert_array_equal(r["i.y"], n["i.y"])
+    assert r.backend == "compiled" and r.notes == []
+    np.testing.assert_allclose(r["i.y"], n["i.y"], rtol=0, atol=1e-12)
 
 
 def test_adaptation_law_projection_keeps_the_estimate_in_its_box(tmp_path):

@@ -254,3 +254,41 @@ def test_the_llvm_stage_computes_reflected_operators_and_every_comparison(a, b):
     L = np.zeros(1)
     assert f(0, 0.0, 2, 0, ws.ctypes.data, L.ctypes.data) == 0
     assert ws[n + 2 * n:n + 3 * n].tolist() == want
+
+
+def test_a_freed_stage_leaves_the_next_compile_working(tmp_path):
+    """llvmlite's MCJIT engine owns the target machine it is made with: a machine shared by
+    every stage was deleted with the first engine freed, and the next compile crashed the
+    process (std::bad_alloc or a segfault).  In a child process, so a regression fails
+    this test instead of killing the run."""
+    pytest.importorskip("numba")
+    import subprocess
+    import sys
+    script = f"""
+import gc, fwdstep
+from fwdstep.compiled import llvm_stage
+def run(g):
+    path = {str(tmp_path / "d.yaml")!r}
+    open(path, "w").write('''
+blocks:
+  k: {{type: Gain, gain: %s}}
+  i: {{type: Integrator, initial: 1.0}}
+connections:
+  - i.y -> k.u
+  - k.y -> i.u
+simulation: {{t_final: 0.1, step: 0.01, solver: rk4}}
+''' % g)
+    return fwdstep.simulate(fwdstep.load_diagram(path), backend="compiled")
+run(-1.5)
+llvm_stage._compiled.clear()
+gc.collect()
+r = run(-2.5)
+print(r.backend, repr(float(r["i.y"][-1])))
+"""
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-500:]
+    backend, value = out.stdout.split()
+    assert backend == "compiled"
+    assert abs(float(value) - math.exp(-0.25)) < 1e-8          # x' = -2.5 x to t = 0.1
