@@ -27,8 +27,11 @@ constraints, gradient norm, feasibility), ``history.png`` (objective per evaluat
 far, and the parameters' path), ``tune.json`` (bounds, settings, the best point, before and
 after numbers, counts), ``best.yaml`` (the diagram file with the tuned parameter values
 written in place of the old ones, comments kept; values the text edit cannot place are
-listed in ``best_overrides.json`` as ``--set`` values) and ``before_after.png`` (the
-objective's and constraints' signals of the original and the tuned diagram).
+listed in ``best_overrides.json`` as ``--set`` values), ``before_after.png`` (the
+objective's and constraints' signals of the original and the tuned diagram) and
+``report.html`` (``fwdstep.views.report``: before against after -- parameters, objective,
+constraints -- the runs and both figures, one self-contained page; ``fwdstep report DIR``
+writes it again).
 """
 from __future__ import annotations
 
@@ -45,7 +48,8 @@ import numpy as np
 from fwdstep.core.errors import ConfigError, FwdstepError
 from fwdstep.results.objectives import objective, parse_constraint, parse_objective
 
-FILES = ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png")
+FILES = ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png",
+         "report.html")
 #: the objective given to the optimiser for a run that failed (times the scale)
 FAILED_RUN_PENALTY = 1e3
 _VARY = re.compile(r"^\s*(?P<name>[^=]+?)\s*=\s*(?P<lo>[-+0-9.eE]+)\s*:\s*(?P<hi>[-+0-9.eE]+)"
@@ -343,6 +347,12 @@ def write_tune(prob: _Problem, result: TuneResult, outdir: str, figures: bool = 
         files.append(history_figure(prob, result, os.path.join(outdir, "history.png")))
         files.append(before_after_figure(prob, result, os.path.join(outdir,
                                                                     "before_after.png")))
+    from fwdstep.core.files import atomic_write
+    from fwdstep.views.report import report_html
+    page = report_html(outdir)              # the page comparing before and after
+    report = os.path.join(outdir, "report.html")
+    atomic_write(report, lambda fh: fh.write(page.encode()), binary=True)
+    files.append(report)
     return files
 
 

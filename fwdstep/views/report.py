@@ -181,10 +181,15 @@ def report_html(run_dir: str) -> str:
     from fwdstep.results.result import SUMMARY_FILE
     summ = os.path.join(run_dir, SUMMARY_FILE)
     sweep_csv = os.path.join(run_dir, "sweep.csv")
-    if not os.path.isfile(summ) and not os.path.isfile(sweep_csv):
-        raise OutputError(f"{run_dir} holds no saved run or sweep (no summary.json or sweep.csv)")
+    tuned = os.path.join(run_dir, TUNE_FILE)
+    if not any(os.path.isfile(f) for f in (summ, sweep_csv, tuned)):
+        raise OutputError(f"{run_dir} holds no saved run, sweep or tuning (no summary.json, "
+                          "sweep.csv or tune.json)")
     parts = []
     title = os.path.basename(os.path.normpath(run_dir))
+    if os.path.isfile(tuned) and not os.path.isfile(summ):
+        parts += _tuning(run_dir, tuned)
+        title = f"tuning {os.path.basename(str(_tune_record(tuned).get('diagram') or title))}"
     if os.path.isfile(summ):
         from fwdstep.results.result import load_result
         r = load_result(run_dir)
@@ -236,6 +241,63 @@ def report_html(run_dir: str) -> str:
             f"<title>fwdstep report: {html.escape(title)}</title><style>{_CSS}</style></head>"
             f"<body>{''.join(parts)}<p style=\"color:#888;font-size:.8em\">{_MARK}</p>"
             "</body></html>\n")
+
+
+TUNE_FILE = "tune.json"
+
+
+def _tune_record(path: str) -> dict:
+    import json
+    from fwdstep.core.errors import DamagedFileError
+    try:
+        with open(path, encoding="utf-8") as fh:
+            rec = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise DamagedFileError(f"{path}: not a tuning record ({exc})") from None
+    if not isinstance(rec, dict) or not isinstance(rec.get("initial"), dict) \
+            or not isinstance(rec.get("best"), dict):
+        raise DamagedFileError(f"{path}: not a tuning record (no 'initial' and 'best')")
+    return rec
+
+
+def _tuning(run_dir: str, path: str) -> list:
+    """The page of ``fwdstep tune -o DIR``: the problem, before against after (parameters,
+    objective, constraints), the runs, and the tuning's figures."""
+    rec = _tune_record(path)
+    parts = [f"<h1>Tuning {html.escape(os.path.basename(str(rec.get('diagram') or '')))}</h1>",
+             _pairs({k: v for k, v in (
+                 ("diagram", rec.get("diagram")), ("minimize", rec.get("minimize")),
+                 ("subject to", "; ".join(rec.get("subject_to") or []) or "(nothing)"),
+                 ("runs", rec.get("runs")), ("time in the runs [s]", rec.get("wall_time_s")),
+                 ("message", rec.get("message"))) if v not in (None, "")})]
+    before, after = rec["initial"], rec["best"]
+    rows = []
+    bounds = rec.get("bounds") or {}
+    for name, v in (before.get("values") or {}).items():
+        b = bounds.get(name)
+        rows.append({"quantity": name, "bounds": f"[{b[0]:g}, {b[1]:g}]" if b else "",
+                     "before": v, "after": (after.get("values") or {}).get(name)})
+    rows.append({"quantity": f"{rec.get('minimize')} (minimised)", "bounds": "",
+                 "before": before.get("cost"), "after": after.get("cost")})
+    for k, expr in enumerate(rec.get("subject_to") or []):
+        pick = (lambda side: (side.get("constraints") or [None] * (k + 1))[k])
+        rows.append({"quantity": f"constraint {expr}", "bounds": "",
+                     "before": pick(before), "after": pick(after)})
+    parts.append("<h2>Before and after</h2>")
+    parts.append(_table(rows, ["quantity", "bounds", "before", "after"]))
+    for name, caption in (("before_after.png", "the signals of the objective and the "
+                           "constraints, before (dashed) and after (solid)"),
+                          ("history.png", "every evaluation of the search")):
+        fig = os.path.join(run_dir, name)
+        if os.path.isfile(fig):
+            with open(fig, "rb") as fh:
+                parts.append(f"<figure>{_img(fh.read(), 'image/png', name)}"
+                             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+    if os.path.isfile(os.path.join(run_dir, "best.yaml")):
+        parts.append("<p>The tuned diagram: <code>best.yaml</code> (run it with "
+                     "<code>fwdstep run best.yaml</code>); every evaluation: "
+                     "<code>history.csv</code>.</p>")
+    return parts
 
 
 #: at most this many state events are listed on the page (all are in summary.json)

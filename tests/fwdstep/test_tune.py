@@ -90,8 +90,22 @@ def test_cli_tune_writes_its_files_and_refuses_bad_options(pi_diagram, tmp_path)
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert "after:  Kp=" in done.stdout
-    for name in ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png"):
+    for name in ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png",
+                 "report.html"):
         assert (out / name).is_file()
+    # the report compares before and after with the numbers of tune.json, both figures inline
+    rec = json.loads((out / "tune.json").read_text())
+    page = (out / "report.html").read_text()
+    assert "<h2>Before and after</h2>" in page and page.count("data:image/png;base64,") == 2
+    row = page[page.index("<td>Kp</td>"):].split("</tr>")[0]
+    assert f"{rec['initial']['values']['Kp']:.6g}" in row
+    assert f"{rec['best']['values']['Kp']:.6g}" in row
+    # fwdstep report DIR writes the same page again from the files
+    os.remove(out / "report.html")
+    again = subprocess.run([sys.executable, os.path.join(root, "cli.py"), "report", str(out)],
+                           env=env, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert (out / "report.html").read_text().split("written by")[0] == page.split("written by")[0]
     bad = cmd[:4] + ["--vary", "Kq=0:1", "--minimize", "ise(e.y)", "-o", str(tmp_path / "b")]
     done = subprocess.run(bad, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 2
