@@ -1,5 +1,6 @@
 """fwdstep report / run --report: one self-contained HTML page; rendered by headless Chromium
 when it is installed (Debian package ``chromium``)."""
+import os
 import base64
 import html.parser
 import shutil
@@ -106,8 +107,13 @@ def test_report_of_a_sweep_has_its_table_and_figure(tmp_path, capsys):
 
 def test_report_refusals(tmp_path, capsys):
     assert main(["report", str(tmp_path)]) == 2
-    assert capsys.readouterr().err == (f"fwdstep: {tmp_path} holds no saved run or sweep (no "
-                                       "summary.json or sweep.csv)\n")
+    assert capsys.readouterr().err == (f"fwdstep: {tmp_path} holds no saved run, sweep or "
+                                       "tuning (no summary.json, sweep.csv or tune.json)\n")
+    (tmp_path / "tune.json").write_text("[1, 2]")          # a damaged tuning record: one line
+    assert main(["report", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == (f"fwdstep: {tmp_path / 'tune.json'}: not a tuning "
+                                       "record (no 'initial' and 'best')\n")
+    os.remove(tmp_path / "tune.json")
     out = _run(tmp_path)
     mine = tmp_path / "notes.html"
     mine.write_text("my notes")
