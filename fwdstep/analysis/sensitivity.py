@@ -165,7 +165,7 @@ def _moved_value(par: Parameter, element: int, delta: float):
     return v.tolist()
 
 
-#: parsed diagram files, by (path, mtime, size) (``fwdstep.structure.spec._read_document``)
+#: parsed diagram files, by (path, mtime, size, content hash) (``fwdstep.structure.spec._read_document``)
 _PARSED: dict = {}
 
 

@@ -18,6 +18,7 @@ their blocks are renamed ``<subsystem>/<block>`` and their declared ports are wi
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 import os
 import re
@@ -683,11 +684,16 @@ def check_figure_text(text: str | None, what: str, file: str, line) -> None:
 def _read_document(path: str, cache: dict | None = None) -> LineDict:
     """Parse and check a diagram file.  With ``cache`` (a dict kept by the caller, e.g. a
     sweep building many variants), each file is parsed once per (path, mtime, size) and every
-    caller gets its own deep copy of the document."""
+    caller gets its own deep copy of the document.  The key includes the SHA-256 of the
+    file's bytes: a file edited in place within the clock's resolution, to the same size, is
+    parsed again (its bytes are read on every call; parsing is what the cache saves)."""
     if cache is not None:
         try:
+            check_regular_file(path)
             st = os.stat(path)
-            key = (os.path.realpath(path), st.st_mtime_ns, st.st_size)
+            with open(path, "rb") as fh:
+                digest = hashlib.sha256(fh.read()).digest()
+            key = (os.path.realpath(path), st.st_mtime_ns, st.st_size, digest)
         except OSError:
             key = None
         if key is not None:

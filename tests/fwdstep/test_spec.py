@@ -190,3 +190,20 @@ def test_every_option_has_help_and_version_prints(capsys):
     assert missing == []
     assert cli.main(["--version"]) == 0
     assert capsys.readouterr().out.startswith("fwdstep ")
+
+
+def test_the_parse_cache_sees_an_edit_that_keeps_size_and_mtime(tmp_path):
+    """A file edited in place to the same size, its mtime put back (an editor, a checkout
+    within the clock's resolution), is parsed again: the cache is keyed by content too."""
+    import os
+    f = tmp_path / "d.yaml"
+    text = ("parameters: {k: 1.5}\nblocks:\n  c: {type: Constant, value: k}\n"
+            "connections: []\nsimulation: {t_final: 0.1, step: 0.01}\n")
+    f.write_text(text)
+    st = os.stat(f)
+    cache = {}
+    assert load_spec(str(f), {}, cache).parameters["k"] == 1.5
+    f.write_text(text.replace("1.5", "2.5"))
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert os.stat(f).st_size == st.st_size and os.stat(f).st_mtime_ns == st.st_mtime_ns
+    assert load_spec(str(f), {}, cache).parameters["k"] == 2.5
