@@ -33,7 +33,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 sys.path.insert(0, HERE)
 
-from robots_benchmark import _rk4  # noqa: E402
+from robots_benchmark import _rk4, slotine_li_by_hand  # noqa: E402
 
 DIAGRAM = os.path.join(ROOT, "diagrams", "robots", "panda_slotine_li.yaml")
 RANGES = {"payload": (0.0, 2.0), "Lambda": (3.0, 8.0), "Gamma": (0.5, 2.0)}
@@ -44,48 +44,17 @@ def hand_run(d, payload: float, lam: float, gamma: float, t_final: float):
     e = q - q_d every log_every steps (rows, n)."""
     import pinocchio as pin
 
-    blocks = {s.block.name: s.block for s in d.schedule}
-    Yb, arm = blocks["Y"], blocks["arm"]
+    arm = next(s.block for s in d.schedule if s.block.name == "arm")
     model = arm.model.copy()
-    params = d.spec.parameters
     frame = model.frames[model.getFrameId("panda_hand")]
     model.appendBodyToJoint(frame.parentJoint, pin.Inertia(payload, np.array([0.0, 0.0, 0.1]),
                                                            np.zeros((3, 3))), frame.placement)
     data = model.createData()
-    model_r, data_r, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
-    cols = Yb._columns
-    n, p = model.nv, Yb.outputs["Y"].shape[1]
-    K = np.asarray(blocks["Ks"].values["gain"], float)
-    K = K if K.ndim == 2 else np.diag(np.broadcast_to(K, (n,)))
-    q0 = np.asarray(params["q0"], float)
-    amp = np.asarray(params["qd_amplitude"], float)
-    w = float(params["qd_frequency"])
-    damping = arm.p.viscous[0]
+    f, x, iq, q_d = slotine_li_by_hand(d, lam, gamma, model, data)
     step, log_every = d.spec.simulation.step, d.spec.simulation.log_every
-    x = np.concatenate([q0, np.zeros(n), np.full(p, float(params["theta0"]))])
-    iq, iv, ith = slice(0, n), slice(n, 2 * n), slice(2 * n, 2 * n + p)
-    regressor, aba = pin.computeJointTorqueRegressor, pin.aba
-    zeros = np.zeros(n)
-
-    def f(t, x):
-        q, v, theta = x[iq], x[iv], x[ith]
-        sn, cs = np.sin(w * t), np.cos(w * t)
-        e = q - (q0 + amp * sn)
-        z = amp * (w * cs) - lam * e
-        zdot = -amp * (w * w * sn) - lam * (v - amp * (w * cs))
-        s = v - z
-        Y = (regressor(model_r, data_r, q, 0.5 * (v + z), zdot)
-             - regressor(model0, data0, q, 0.5 * (v - z), zeros))[:, cols]
-        tau = Y @ theta - K @ s
-        dx = np.empty_like(x)
-        dx[iq] = v
-        dx[iv] = aba(model, data, q, v, tau - damping * v)
-        dx[ith] = -gamma * (Y.T @ s)
-        return dx
-
     _, _, log = _rk4(f, x, t_final, step, log_every)
     t = np.arange(log.shape[0]) * (step * log_every)
-    return log[:, iq] - (q0 + amp * np.sin(w * t)[:, None])
+    return log[:, iq] - q_d(t)
 
 
 def main(argv=None) -> int:

@@ -114,20 +114,23 @@ def hand_loop(d, t_final: float, step: float, log_every: int):
     return log, e_final
 
 
-def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
-    """The closed loop of {panda,ur5}_slotine_li.yaml, integrated by hand with pinocchio."""
+def slotine_li_by_hand(d, lam: float, gamma: float, model=None, data=None):
+    """The right-hand side f(t, x) of {panda,ur5}_slotine_li.yaml's closed loop written by
+    hand with pinocchio (``aba`` on ``model``, default the arm's own; two
+    ``computeJointTorqueRegressor`` calls on the regressor block's models), its initial
+    state and its slices (q, qdot, theta_hat); q_d = q0 + amp sin(w t)."""
     import pinocchio as pin
 
     blocks = {s.block.name: s.block for s in d.schedule}
     Yb, arm = blocks["Y"], blocks["arm"]
-    model, data, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
+    model_r, data_r, model0, data0 = Yb.model, Yb._data, Yb.model0, Yb._data0
+    if model is None:
+        model, data = model_r, data_r
     cols = Yb._columns
     n, p = model.nv, Yb.outputs["Y"].shape[1]
     params = d.spec.parameters
-    lam = float(params["Lambda"])
     K = np.asarray(fwdstep_value(d, "Ks", "gain"), float)
     K = K if K.ndim == 2 else np.diag(np.broadcast_to(K, (n,)))
-    gamma = float(params["Gamma"])
     q0 = np.asarray(params["q0"], float)
     amp = np.asarray(params["qd_amplitude"], float)
     w = float(params["qd_frequency"])
@@ -144,7 +147,7 @@ def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
         z = amp * (w * cs) - lam * e
         zdot = -amp * (w * w * sn) - lam * (v - amp * (w * cs))
         s = v - z
-        Y = (regressor(model, data, q, 0.5 * (v + z), zdot)
+        Y = (regressor(model_r, data_r, q, 0.5 * (v + z), zdot)
              - regressor(model0, data0, q, 0.5 * (v - z), zeros))[:, cols]
         tau = Y @ theta - K @ s
         dx = np.empty_like(x)
@@ -153,8 +156,18 @@ def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
         dx[ith] = -gamma * (Y.T @ s)
         return dx
 
+    def q_d(t):
+        return q0 + amp * np.sin(w * np.asarray(t))[..., None]
+
+    return f, x, iq, q_d
+
+
+def hand_loop_slotine_li(d, t_final: float, step: float, log_every: int):
+    """The closed loop of {panda,ur5}_slotine_li.yaml, integrated by hand with pinocchio."""
+    params = d.spec.parameters
+    f, x, iq, q_d = slotine_li_by_hand(d, float(params["Lambda"]), float(params["Gamma"]))
     x, t, log = _rk4(f, x, t_final, step, log_every)
-    e_final = x[iq] - (q0 + amp * np.sin(w * t))
+    e_final = x[iq] - q_d(t)
     return log, e_final
 
 
