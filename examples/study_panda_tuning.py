@@ -79,7 +79,8 @@ def derived_diagram(law: str, outdir: str, backend: str = "compiled") -> str:
     doc["blocks"]["usage"] = {"type": "Gain", "gain": "diag(1/effort)"}
     doc["connections"] = [c + ", usage.u" if c.replace(" ", "").startswith("tau.y->") else c
                           for c in doc["connections"]]
-    doc["log"].append({"signal": "usage.y", "label": "$\\tau_i / \\tau_{\\max,i}$"})
+    doc["log"].append({"signal": "usage.y", "label": "$\\tau_i / \\tau_{\\max,i}$",
+                       "components": [f"joint {i + 1}" for i in range(7)]})
     doc["plots"]["torque_usage"] = ["usage.y"]
     doc["simulation"]["backend"] = backend      # where fwdstep.tune runs the sensitivities
     folder = os.path.join(outdir, law)
