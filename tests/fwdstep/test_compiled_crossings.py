@@ -13,6 +13,7 @@ import pytest
 
 import fwdstep
 from fwdstep.structure.spec import load_spec
+from tests.fwdstep.crossing_diagrams import BALL, CHATTER, RELAY, STOP
 
 pytest.importorskip("numba")
 
@@ -29,55 +30,6 @@ connections:
 simulation: {t_final: 5.0, step: 0.1, solver: rk4}
 """
 
-BALL = """
-blocks:
-  g:    {type: Constant, value: -9.81}
-  v:    {type: LimitedIntegrator, initial: 0.0}
-  p:    {type: Integrator, initial: 10.0}
-  neg:  {type: Gain, gain: -1.0}
-  rest: {type: Gain, gain: -0.8}
-connections:
-  - g.y -> v.u
-  - v.y -> p.u
-  - p.y -> neg.u
-  - neg.y -> v.reset
-  - v.y -> rest.u
-  - rest.y -> v.value
-simulation: {t_final: 13.0, step: 0.01, solver: rk4}
-"""
-
-RELAY = """
-blocks:
-  relay: {type: Relay, on_threshold: 1.0, off_threshold: -1.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 8.1, step: 0.3, solver: rk4}
-"""
-
-STOP = """
-blocks:
-  one:  {type: Constant, value: -1.0}
-  x:    {type: Integrator, initial: 1.234}
-  stop: {type: Stop}
-connections:
-  - one.y -> x.u
-  - x.y -> stop.u
-simulation: {t_final: 5.0, step: 0.1, solver: rk4}
-"""
-
-CHATTER = """
-blocks:
-  relay: {type: Relay, on_threshold: 0.0, off_threshold: 0.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator, initial: 0.5}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 2.0, step: 0.01, solver: rk4}
-"""
 
 # a declared time (the Step at 1.05) as well as crossings; records every 3rd step
 STEPPED = SAT.replace("  i:   {type: Integrator, initial: 3.37}", """  i:   {type: Integrator, initial: 3.37}

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import fwdstep
+from tests.fwdstep.crossing_diagrams import BALL, CHATTER, RELAY, STOP
 
 
 def _run(tmp_path, text, name="d.yaml", **kw):
@@ -59,24 +60,6 @@ def test_no_crossing_costs_no_number(tmp_path):
     np.testing.assert_array_equal(r["i.y"], g["i.y"])
 
 
-BALL = """
-blocks:
-  g:    {type: Constant, value: -9.81}
-  v:    {type: LimitedIntegrator, initial: 0.0}
-  p:    {type: Integrator, initial: 10.0}
-  neg:  {type: Gain, gain: -1.0}
-  rest: {type: Gain, gain: -0.8}
-connections:
-  - g.y -> v.u
-  - v.y -> p.u
-  - p.y -> neg.u
-  - neg.y -> v.reset
-  - v.y -> rest.u
-  - rest.y -> v.value
-simulation: {t_final: 13.0, step: 0.01, solver: rk4}
-"""
-
-
 def test_bouncing_ball_apex_heights(tmp_path):
     """Restitution 0.8 from 10 m: the apex after bounce k is 0.64^k * 10 m.  Between
     bounces p + v^2 / 2g is the apex height (energy), read at every recorded step."""
@@ -90,18 +73,6 @@ def test_bouncing_ball_apex_heights(tmp_path):
         np.testing.assert_allclose(apex[flight], 10 * 0.64 ** (k + 1), rtol=0, atol=1e-9)
 
 
-RELAY = """
-blocks:
-  relay: {type: Relay, on_threshold: 1.0, off_threshold: -1.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 8.1, step: 0.3, solver: rk4}
-"""
-
-
 def test_relay_hysteresis_is_a_triangle_wave(tmp_path):
     """Off (+1) until x reaches 1, on (-1) until x falls to -1: switches at 1, 3, 5, 7."""
     r = _run(tmp_path, RELAY)
@@ -113,16 +84,7 @@ def test_relay_hysteresis_is_a_triangle_wave(tmp_path):
 
 
 def test_stop_block_ends_the_run_at_the_crossing(tmp_path):
-    r = _run(tmp_path, """
-blocks:
-  one:  {type: Constant, value: -1.0}
-  x:    {type: Integrator, initial: 1.234}
-  stop: {type: Stop}
-connections:
-  - one.y -> x.u
-  - x.y -> stop.u
-simulation: {t_final: 5.0, step: 0.1, solver: rk4}
-""")
+    r = _run(tmp_path, STOP)
     assert r.status == "stopped"
     assert abs(r.t[-1] - 1.234) < 1e-12 and abs(r["x.y"][-1]) < 1e-12
     assert "stopped by block 'stop' (Stop) at t = 1.234" in r.message
@@ -131,16 +93,7 @@ simulation: {t_final: 5.0, step: 0.1, solver: rk4}
 def test_chattering_is_reported_once(tmp_path):
     """x' = -sign(x) (a Relay without hysteresis) slides on x = 0 from t = 0.5: one
     report, one note, and the run goes on (no storm of tiny steps)."""
-    r = _run(tmp_path, """
-blocks:
-  relay: {type: Relay, on_threshold: 0.0, off_threshold: 0.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator, initial: 0.5}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 2.0, step: 0.01, solver: rk4}
-""")
+    r = _run(tmp_path, CHATTER)
     assert r.status == "ok"
     kinds = [e.kind for e in r.events]
     assert kinds.count("chattering") == 1 and len(kinds) < 20

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 import fwdstep
+from tests.fwdstep import crossing_diagrams
+from tests.fwdstep.crossing_diagrams import CHATTER, RELAY
 
 TOL = {"simulation.rtol": 1e-10, "simulation.atol": 1e-10}
 
@@ -53,22 +55,7 @@ def test_saturated_decay_to_the_tolerance(tmp_path, solver, tol, bound):
     assert err[np.argmin(np.abs(r.t - 4.0))] < bound
 
 
-BALL = """
-blocks:
-  g:    {type: Constant, value: -9.81}
-  v:    {type: LimitedIntegrator, initial: 0.0}
-  p:    {type: Integrator, initial: 10.0}
-  neg:  {type: Gain, gain: -1.0}
-  rest: {type: Gain, gain: -0.8}
-connections:
-  - g.y -> v.u
-  - v.y -> p.u
-  - p.y -> neg.u
-  - neg.y -> v.reset
-  - v.y -> rest.u
-  - rest.y -> v.value
-simulation: {t_final: 12.0, step: 0.01, solver: rk4}
-"""
+BALL = crossing_diagrams.BALL.replace("t_final: 13.0", "t_final: 12.0")
 
 
 @pytest.mark.parametrize("solver", ["dop853", "radau"])
@@ -109,18 +96,6 @@ simulation: {t_final: 5.0, step: 0.1, solver: rk4}
     assert [(e.block, round(e.time, 9)) for e in r.events] == [("stop", round(t_stop, 9))]
 
 
-RELAY = """
-blocks:
-  relay: {type: Relay, on_threshold: 1.0, off_threshold: -1.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 8.1, step: 0.3, solver: rk4}
-"""
-
-
 @pytest.mark.parametrize("solver", ["dop853", "radau", "lsoda"])
 def test_relay_switching_times(tmp_path, solver):
     """Off (+1) until x reaches 1, on (-1) until x falls to -1: switches at 1, 3, 5, 7 and
@@ -137,16 +112,7 @@ def test_relay_switching_times(tmp_path, solver):
 def test_chattering_is_reported_once(tmp_path):
     """x' = -sign(x) slides on x = 0 from t = 0.5: one report, one note, the run goes on
     with the relay following at the grid steps."""
-    r = _run(tmp_path, """
-blocks:
-  relay: {type: Relay, on_threshold: 0.0, off_threshold: 0.0, on_value: -1.0,
-          off_value: 1.0}
-  x:     {type: Integrator, initial: 0.5}
-connections:
-  - x.y -> relay.u
-  - relay.y -> x.u
-simulation: {t_final: 2.0, step: 0.01, solver: rk4}
-""")
+    r = _run(tmp_path, CHATTER)
     assert r.status == "ok"
     kinds = [e.kind for e in r.events]
     assert kinds.count("chattering") == 1 and len(kinds) < 20
