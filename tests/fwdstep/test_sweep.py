@@ -411,3 +411,34 @@ def test_an_integer_axis_has_integer_ticks_and_many_traces_a_short_legend(path):
     for ax in fig.axes:
         legend = ax.get_legend()
         assert legend is None or len(legend.get_texts()) <= MAX_LEGEND_ENTRIES
+
+
+def test_the_garbage_collector_is_left_as_it_was(path):
+    """A sweep pauses Python's collector while it derives the variants and freezes them
+    while the batches run (fwdstep.sweeps.sweep._CollectorSpared); afterwards, after a
+    refused variant too, the collector is as the caller had it: on or off, and with the
+    caller's own frozen objects still frozen."""
+    import gc
+    from fwdstep.errors import DiagramError
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+    seen = []
+    run_sweep(path, {"gamma": [1, 2]}, workers=1,
+              progress=lambda *a, **k: seen.append((gc.isenabled(), gc.get_freeze_count())))
+    assert seen and all(on and frozen > 0 for on, frozen in seen)   # frozen while running
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+    with pytest.raises(DiagramError):
+        run_sweep(path, {"ell": [2, -1]}, workers=1)                 # a refused variant
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+    gc.disable()
+    try:
+        run_sweep(path, {"gamma": [1, 2]}, workers=1)
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    gc.freeze()
+    try:
+        mine = gc.get_freeze_count()        # (a few frozen objects may be freed meanwhile)
+        run_sweep(path, {"gamma": [1, 2]}, workers=1)
+        assert gc.get_freeze_count() > mine // 2                     # not released
+    finally:
+        gc.unfreeze()
