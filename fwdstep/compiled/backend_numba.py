@@ -522,7 +522,7 @@ class _Stage:
         return lines
 
 
-class _ScalarStage:
+class _ScalarStage(sz.ParameterColumns):
     """One stage as straight-line scalar code: every kernel traced once on symbols
     (``fwdstep.compiled.scalarize``), every fused group written out entry by entry (the entries of M
     that are zero in every variant left out).  Raises ``Untraceable`` when a kernel cannot
@@ -673,10 +673,7 @@ class _ScalarStage:
         self.need_r = sorted(need_r - set(inv))
         self.need_g = sorted(need_g - set(inv))
         self.n_nodes = len(need_d | need_r | need_g)
-        W = np.empty((max([len(c) for c in self.columns] + [1]), len(self.columns)))
-        for j, c in enumerate(self.columns):
-            W[:, j] = c
-        self.W = W
+        self.W = self.column_matrix()
         # the workspace ws of a variant: x_i (N), k_1..k_S (S N), W's row, Z
         self.n_states = self._total_states(d)
         self.n_columns = len(self.columns)
@@ -730,36 +727,6 @@ class _ScalarStage:
         """The entries of the integrated state (x first)."""
         return d.n_states
 
-    def _leaf(self, values):
-        """A parameter entry with these values over the variants: a column of W, loaded
-        into a leaf.  The code is written for the pattern of the values (as it is for the
-        zeros of a fused M): an entry that is 0, 1 or -1 in every variant is that constant
-        (so 0 * a and 1 * a fold away), and entries equal to each other in every variant
-        are one leaf (a Sine's frequency repeated for each derivative is one sin).  Another
-        pattern writes other code, hence another cached stage."""
-        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
-        first = float(values[0])
-        if first in (0.0, 1.0, -1.0) and np.all(values == first):
-            return self.tr.const(first)
-        key = values.tobytes()
-        if key in self._by_values and not np.isnan(values).any():
-            return self._by_values[key]
-        if len(self.columns) >= MAX_SCALAR_PARAMS:
-            raise sz.Untraceable(f"more than {MAX_SCALAR_PARAMS} parameter entries")
-        j = len(self.columns)
-        self.columns.append(values)
-        node = self._by_values[key] = self.tr.leaf(f"p{j}", True, values)
-        return node
-
-    def _param(self, arr):
-        """A parameter (or constant signal) array (Bp, *shape) as an object array
-        (1, *shape) of leaves."""
-        arr = np.asarray(arr, dtype=np.float64)
-        out = np.empty((1,) + arr.shape[1:], dtype=object)
-        for idx in np.ndindex(*arr.shape[1:]):
-            out[(0,) + idx] = self._leaf(arr[(slice(None),) + idx])
-        return out
-
 
 class _TracedParams:
     """A block seen by its traced ``zero_crossings``: ``p.<name>`` are parameter leaves
@@ -792,7 +759,7 @@ class _LazyParams:
 
 #: Diagrams with more parameter entries than this keep the array code (their scalar code
 #: would be long to compile).
-MAX_SCALAR_PARAMS = 4096
+MAX_SCALAR_PARAMS = sz.MAX_SCALAR_PARAMS
 
 
 def _ops_for(schedule, shapes, consts):

@@ -1,5 +1,6 @@
 """A scalar stage (``backend_numba._ScalarStage``) compiled straight to machine code with
-LLVM (llvmlite, which numba brings), in tens of milliseconds.
+LLVM (llvmlite, which numba brings), in tens of milliseconds (the IR of each node and the
+compile: ``fwdstep.compiled.llvm_ir``, shared with the NumPy path's native block kernels).
 
 The traced graph (``fwdstep.compiled.scalarize``) is straight-line floating-point code: every node
 is one LLVM instruction (``fadd``, ``fmul``, ``fcmp``, ``select``, a call of the math
@@ -21,103 +22,16 @@ returns 4 when one changed sign and is finite (when the diagram has guards).
 from __future__ import annotations
 
 import hashlib
-import struct
 
-import llvmlite.binding as llvm
 from numba.core import types
 from numba.core.types import WrapperAddressProtocol
 from numba.experimental import function_type  # noqa: F401  (registers the typeof above)
 
+from fwdstep.compiled.llvm_ir import INF as _INF, BasicBlock as _Block, Emitter as _Emitter, \
+    engine_of, literal as _double
+
 SIGNATURE = types.int64(types.int64, types.float64, types.int64, types.int64, types.uintp,
                         types.uintp)
-
-_UNARY = {"sin": "llvm.sin.f64", "cos": "llvm.cos.f64", "exp": "llvm.exp.f64",
-          "log": "llvm.log.f64", "sqrt": "llvm.sqrt.f64", "abs": "llvm.fabs.f64",
-          "tan": "tan", "tanh": "tanh", "sinh": "sinh", "cosh": "cosh", "atan": "atan",
-          "asin": "asin", "acos": "acos", "floor": "llvm.floor.f64"}
-_ARITH = {"+": "fadd", "-": "fsub", "*": "fmul", "/": "fdiv"}
-_CMP = {"<": "olt", "<=": "ole", ">": "ogt", ">=": "oge", "==": "oeq", "!=": "une"}
-_INF = "0x7FF0000000000000"
-
-
-def _double(v: float) -> str:
-    """An exact LLVM literal of the double v."""
-    return "0x" + struct.pack(">d", float(v)).hex().upper()
-
-
-class _Block:
-    """The instructions of one basic block and the names of the nodes defined so far on
-    the way to it (its dominators')."""
-
-    def __init__(self, em, label, names):
-        self.em, self.label, self.names = em, label, dict(names)
-        self.lines = [f"{label}:"]
-
-    def emit(self, text) -> str:
-        name = f"%t{self.em.count}"
-        self.em.count += 1
-        self.lines.append(f"  {name} = {text}")
-        return name
-
-    def load(self, base, offset) -> str:
-        ptr = self.emit(f"getelementptr inbounds double, double* {base}, i64 {offset}")
-        return self.emit(f"load double, double* {ptr}")
-
-    def store(self, base, offset, value) -> None:
-        ptr = self.emit(f"getelementptr inbounds double, double* {base}, i64 {offset}")
-        self.lines.append(f"  store double {value}, double* {ptr}")
-
-    def value(self, node, want="double") -> str:
-        if node.op == "const":
-            v = self.em.tr.value(node)
-            if want == "i1":
-                return "true" if v != 0.0 else "false"
-            return _double(v)
-        name, kind = self.names[node.n]
-        if kind == want:
-            return name
-        if want == "double":
-            return self.emit(f"uitofp i1 {name} to double")
-        return self.emit(f"fcmp une double {name}, {_double(0.0)}")
-
-    def define(self, node) -> None:
-        """Emit node (its arguments are defined)."""
-        op, a = node.op, node.args
-        if op in _CMP:
-            self.names[node.n] = (self.emit(f"fcmp {_CMP[op]} double {self.value(a[0])}, "
-                                            f"{self.value(a[1])}"), "i1")
-            return
-        if op in ("&", "|"):
-            self.names[node.n] = (self.emit(f"{'and' if op == '&' else 'or'} i1 "
-                                            f"{self.value(a[0], 'i1')}, "
-                                            f"{self.value(a[1], 'i1')}"), "i1")
-            return
-        if op == "!":
-            self.names[node.n] = (self.emit(f"xor i1 {self.value(a[0], 'i1')}, true"), "i1")
-            return
-        if op == "?":
-            c, x, y = self.value(a[0], "i1"), self.value(a[1]), self.value(a[2])
-            out = self.emit(f"select i1 {c}, double {x}, double {y}")
-        elif op == "-" and len(a) == 1:
-            out = self.emit(f"fneg double {self.value(a[0])}")
-        elif op in _ARITH:
-            out = self.emit(f"{_ARITH[op]} double {self.value(a[0])}, {self.value(a[1])}")
-        elif op == "**":
-            out = self.call("llvm.pow.f64", self.value(a[0]), self.value(a[1]))
-        elif op == "atan2":
-            out = self.call("atan2", self.value(a[0]), self.value(a[1]))
-        else:
-            out = self.call(_UNARY[op], self.value(a[0]))
-        self.names[node.n] = (out, "double")
-
-    def call(self, fn, *args) -> str:
-        self.em.declare.add((fn, len(args)))
-        return self.emit(f"call double @{fn}({', '.join('double ' + x for x in args)})")
-
-
-class _Emitter:
-    def __init__(self, tr):
-        self.tr, self.count, self.declare = tr, 0, set()
 
 
 def stage_ir(st) -> str:
@@ -223,21 +137,6 @@ class CompiledStage(WrapperAddressProtocol):
 
 
 _compiled: dict = {}
-_target = []
-
-
-def _target_machine():
-    """A new target machine for one stage's engine: ``llvm.create_mcjit_compiler`` makes
-    the engine its owner, so it is deleted with the engine (one machine shared by every
-    stage dangled once the first engine was freed: a segfault in the next compile)."""
-    if not _target:
-        llvm.initialize_native_target()
-        llvm.initialize_native_asmprinter()
-        _target.append((llvm.Target.from_default_triple(), llvm.get_host_cpu_name(),
-                        llvm.get_host_cpu_features().flatten()))
-    target, cpu, features = _target[0]
-    return target.create_target_machine(cpu=cpu, features=features, opt=2,
-                                        codemodel="jitdefault")
 
 
 def compile_stage(st, before=None) -> CompiledStage:
@@ -248,16 +147,7 @@ def compile_stage(st, before=None) -> CompiledStage:
     if key not in _compiled:
         if before is not None:
             before()
-        tm = _target_machine()
-        mod = llvm.parse_assembly(text)
-        mod.verify()
-        mod.triple = tm.triple
-        mod.data_layout = str(tm.target_data)
-        pto = llvm.create_pipeline_tuning_options(speed_level=2)
-        pb = llvm.create_pass_builder(tm, pto)
-        pb.getModulePassManager().run(mod, pb)
-        engine = llvm.create_mcjit_compiler(mod, tm)
-        engine.finalize_object()
+        engine = engine_of(text)
         _compiled[key] = CompiledStage(engine, engine.get_function_address("stage"))
         while len(_compiled) > 256:     # a program holds its own stage (and its engine)
             _compiled.pop(next(iter(_compiled)))

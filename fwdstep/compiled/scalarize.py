@@ -435,6 +435,58 @@ class Trace:
         return seen
 
 
+#: traces with more parameter entries than this are refused (their code would be long to
+#: compile)
+MAX_SCALAR_PARAMS = 4096
+
+
+class ParameterColumns:
+    """Parameters as leaves of the trace ``self.tr``: every entry a column of a matrix W
+    (one row per variant, ``self.columns``), loaded into a leaf, constants where the values
+    allow (the compiled stage, ``fwdstep.compiled.backend_numba._ScalarStage``, and the NumPy
+    path's native block kernels, ``fwdstep.compiled.native_block``)."""
+
+    max_columns = MAX_SCALAR_PARAMS
+
+    def _leaf(self, values):
+        """A parameter entry with these values over the variants: a column of W, loaded
+        into a leaf.  The code is written for the pattern of the values (as it is for the
+        zeros of a fused M): an entry that is 0, 1 or -1 in every variant is that constant
+        (so 0 * a and 1 * a fold away), and entries equal to each other in every variant
+        are one leaf (a Sine's frequency repeated for each derivative is one sin).  Another
+        pattern writes other code, hence another cached stage."""
+        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        first = float(values[0])
+        if first in (0.0, 1.0, -1.0) and np.all(values == first):
+            return self.tr.const(first)
+        key = values.tobytes()
+        if key in self._by_values and not np.isnan(values).any():
+            return self._by_values[key]
+        if len(self.columns) >= self.max_columns:
+            raise Untraceable(f"more than {self.max_columns} parameter entries")
+        j = len(self.columns)
+        self.columns.append(values)
+        node = self._by_values[key] = self.tr.leaf(f"p{j}", True, values)
+        return node
+
+    def _param(self, arr):
+        """A parameter (or constant signal) array (Bp, *shape) as an object array
+        (1, *shape) of leaves."""
+        arr = np.asarray(arr, dtype=np.float64)
+        out = np.empty((1,) + arr.shape[1:], dtype=object)
+        for idx in np.ndindex(*arr.shape[1:]):
+            out[(0,) + idx] = self._leaf(arr[(slice(None),) + idx])
+        return out
+
+    def column_matrix(self) -> np.ndarray:
+        """W (variants, columns): column j the values of leaf p{j} (one row when they are
+        shared by every variant)."""
+        W = np.empty((max([len(c) for c in self.columns] + [1]), len(self.columns)))
+        for j, c in enumerate(self.columns):
+            W[:, j] = c
+        return W
+
+
 # ---------------------------------------------------------------------- symbolic arrays
 def _compare(op):
     def f(a, b):
@@ -586,13 +638,16 @@ class Rebinder:
         self.np = _NumpyShim(trace)
         self.math = _math_shim(trace)
         self.done: dict = {}
-        from fwdstep.compiled import compiled_ops
         from fwdstep.core import kernelops
-        self.ops_module, self.kernelops = compiled_ops, kernelops
+        self.kernelops = kernelops
         self._ops = None
 
     def ops(self):
         if self._ops is None:
+            # (imported here: with numba installed it imports numba, which kernels that
+            # call no kernelops function, such as the rigid-body ones, never need)
+            from fwdstep.compiled import compiled_ops
+            self.ops_module = compiled_ops
             self._ops = types.SimpleNamespace(**{
                 name: self.function(getattr(self.ops_module, name))
                 for name in dir(self.kernelops)

@@ -37,6 +37,8 @@ compile (pinocchio) sets ``compile_with = "objmode"``: the compiled loop then ca
 ordinary ``output``/``derivative`` through numba's object mode.  ``compile_with = "traced"``:
 kernels the compiled backend only traces into scalar code (``fwdstep.compiled.scalarize``; the robot
 blocks of blocks/urdf.py), object mode when the diagram's stage does not trace.  A block
+whose NumPy-path method is slow (a Python library called per variant) may name kernels in
+``native_kernels``: the NumPy path then runs them as native code when it can.  A block
 that cannot run compiled at all says why in ``cannot_compile``; the compiled backend then refuses it by name.
 """
 from __future__ import annotations
@@ -161,6 +163,13 @@ class Block:
     #: code, e.g. a kernel calling pinocchio) from the compiled loop through numba's object
     #: mode, one variant per call, at the cost of a Python call (docs/writing-blocks.md)
     compile_with: ClassVar[str] = "numba"
+    #: the kernels ("output", "derivative") worth running as native code on the NumPy path:
+    #: when llvmlite is installed the generated program (``fwdstep.run.program``) calls a
+    #: native compile of that kernel (``fwdstep.compiled.native_block``: the same equations,
+    #: traced and compiled for the block's structure) instead of the method, for the batches
+    #: ``native_wanted`` accepts; a kernel the tracer refuses keeps the method.  Worth it
+    #: where the method makes several Python or library calls per stage (the robot blocks)
+    native_kernels: ClassVar[tuple] = ()
     #: set by ``set_kernels``: (output kernel, derivative kernel, param names, static values)
     kernels: "Kernels | None" = None
     #: the attributes ``finalize`` may (re)compute from the stacked ``p`` and the batch size:
@@ -192,6 +201,11 @@ class Block:
                 raise ParameterError(
                     f"block '{name}': port '{port.name}' would have {port.size} elements "
                     f"(limit {MAX_SIGNAL_SIZE})", block=name, port=port.name)
+
+    def native_wanted(self, batch: int) -> tuple:
+        """The ``native_kernels`` to run natively in a batch of ``batch`` variants (default:
+        all of them; a block may keep its method for some batches or settings)."""
+        return self.native_kernels
 
     # ------------------------------------------------------------------ declaration API
     def setup(self, **params: Any) -> None:  # pragma: no cover - overridden

@@ -27,6 +27,7 @@ exactly once per stage, derivatives after all outputs, logging at stage 1.
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 from dataclasses import dataclass
 
@@ -221,11 +222,18 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
             ins = ", " + ins
         return f"{src.const('kern', fn)}(ts, {xview}{ins}{kargs[id(block)]})"
 
+    native = native_methods(d)
+
+    def method(block, name: str):
+        """The callable of ``block.<name>``: its native kernel when there is one."""
+        return native.get(id(block), {}).get(name) or getattr(block, name)
+
     def direct(block, method: str) -> bool:
         """True when ``block``'s ``method`` is the base class's kernel call (not overridden
-        by its class or wrapped on the instance)."""
+        by its class or wrapped on the instance, not run natively)."""
         k = block.kernels
         return (getattr(type(block), method) is getattr(Block, method) and k is not None
+                and method not in native.get(id(block), {})
                 and method not in block.__dict__ and getattr(k, method) is not None)
 
     cells: dict = {}
@@ -292,7 +300,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 call = kernel_call(blk, blk.kernels.output, state_view(buffer, op.state),
                                    op.inputs)
             else:
-                call = (f"{src.const('out', blk.output)}(ts, {state_view(buffer, op.state)}, "
+                call = (f"{src.const('out', method(blk, 'output'))}(ts, {state_view(buffer, op.state)}, "
                         f"{args(op.inputs)})")
             if time_only(blk) and direct(blk, "output"):
                 lines.extend(memo(blk, "r", call))
@@ -316,7 +324,7 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 lines.append(src.copy(f"k{s}_", kv, kernel_call(
                     blk, blk.kernels.derivative, state_view(buffer, step.state), step.inputs)))
                 continue
-            fn = src.const("der", blk.derivative)
+            fn = src.const("der", method(blk, "derivative"))
             lines.append(src.copy(f"k{s}_", kv, f"{fn}(ts, {state_view(buffer, step.state)}, "
                                                 f"{args(step.inputs)})"))
         if derivative_group is not None:
@@ -431,6 +439,36 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                    plan=plan, source=source, first_ts=ns["first_ts"],
                    first_record_ts=ns["first_record_ts"], final_ts=ns["final_ts"],
                    rest_h=ns["rest_h"], sample_signals=ns.get("sample_signals"), k=K, G=G)
+
+
+#: the module that compiles a block's kernel to native code (``Block.native_kernels``),
+#: loaded by name: the run layer never imports ``fwdstep.compiled``.  Without llvmlite it
+#: does not import and every block runs its method.
+PLUGGED_NATIVE = "fwdstep.compiled.native_block"
+
+
+def native_methods(d) -> dict:
+    """id(block) -> {"output" or "derivative": its native kernel} for the blocks of ``d``
+    that want native kernels at its batch size (``Block.native_wanted``) and whose kernels
+    compile; {} without the plugged module."""
+    wanted, seen = [], set()
+    for st in list(d.schedule) + list(d.stateful):
+        blk = st.block
+        if id(blk) not in seen:
+            seen.add(id(blk))
+            wanted += [(blk, which) for which in blk.native_wanted(d.batch)]
+    if not wanted:
+        return {}
+    try:
+        provider = importlib.import_module(PLUGGED_NATIVE)
+    except ImportError:
+        return {}
+    out: dict = {}
+    for blk, which in wanted:
+        fn = provider.native_kernel(blk, which, d.batch)
+        if fn is not None:
+            out.setdefault(id(blk), {})[which] = fn
+    return out
 
 
 class _GroupBuffers:
