@@ -52,6 +52,24 @@ def test_the_native_plant_equals_pinocchio_aba_with_friction(robot):
             _close(dx[b, n:], pin.aba(model, data, q, v, torque))
 
 
+def test_a_batch_of_payloads_reads_each_variants_parameters():
+    """Parameters that differ between variants (a payload sweep) are rows of W: each row of
+    the native batch equals pinocchio's aba on that variant's own model."""
+    from fwdstep.structure.compiler import stack_blocks
+    masses = (0.0, 1.0, 2.5)
+    blocks = [[URDFArm("arm", robot="panda", payload=m, payload_frame="panda_hand",
+                       implementation="pinocchio")] for m in masses]
+    stacked = stack_blocks(blocks)[0]
+    stacked.implementation = "auto"
+    f = native_kernel(stacked, "derivative", 3)
+    rng = np.random.default_rng(5)
+    x, tau = rng.standard_normal((3, 14)), rng.standard_normal((3, 7))
+    batch = f(0.0, x, (tau, np.zeros((1, 7))))
+    for b, one in enumerate(blocks):
+        _close(batch[b], one[0].derivative(0.0, x[b:b + 1], (tau[b:b + 1], np.zeros((1, 7))))[0])
+    assert np.abs(batch[0] - batch[2]).max() > 1e-6        # the payloads differ
+
+
 @pytest.mark.parametrize("robot,parameters", [("panda", "base"), ("ur5", "full")])
 def test_the_native_regressor_equals_pinocchios_polarized_regressor(robot, parameters):
     Y = URDFRegressor("Y", robot=robot, parameters=parameters)
