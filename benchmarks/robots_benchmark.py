@@ -29,9 +29,16 @@ with the plant's URDF damping), skipped for any other.
     python benchmarks/robots_benchmark.py --compiled --diagram diagrams/robots/panda_slotine_li.yaml
     python benchmarks/robots_benchmark.py --kernels      # NumPy path: kernels vs pinocchio per batch
 
+The NumPy path runs the robot blocks as ``implementation: auto`` makes them run: their kernels
+compiled to native code (fwdstep/compiled/native_block.py; "fwdstep simulate"), and, for
+comparison, with ``implementation: pinocchio`` on every URDF block ("fwdstep, pinocchio"),
+interleaved with the others; the native kernels' trace and compile happen in an untimed
+first run.
+
 ``--kernels`` times, per batch size, one evaluation of the Panda's aba and Slotine-Li
-regressor by fwdstep's kernels (every variant in one pass) against pinocchio one variant at a
-time (the choice ``implementation: auto`` makes, blocks/urdf.py KERNELS_FROM_BATCH).
+regressor by fwdstep's kernels as NumPy arrays (every variant in one pass), by pinocchio one
+variant at a time and by the native kernels (every variant in one call; blocks/urdf.py
+``_native_wanted``, KERNELS_FROM_BATCH).
 """
 from __future__ import annotations
 
@@ -182,18 +189,23 @@ def kernels_against_pinocchio(robot: str = "panda", batches=(1, 16, 64, 256, 102
     (NumPy, every variant at once) and by pinocchio (one variant at a time), per batch size."""
     from fwdstep.blocks.urdf import URDFArm, URDFRegressor
     rng = np.random.default_rng(0)
+    from fwdstep.compiled.native_block import native_kernel
     rows = []
     for B in batches:
         timings = {}
-        for impl in ("kernels", "pinocchio"):
-            arm = URDFArm("arm", robot=robot, implementation=impl)
-            Y = URDFRegressor("Y", robot=robot, parameters="base", implementation=impl)
+        for impl in ("kernels", "pinocchio", "native"):
+            kind = "kernels" if impl == "native" else impl
+            arm = URDFArm("arm", robot=robot, implementation=kind)
+            Y = URDFRegressor("Y", robot=robot, parameters="base", implementation=kind)
             n = arm._n
             x = rng.standard_normal((B, 2 * n))
             tau = rng.standard_normal((B, n))
             u = tuple(rng.standard_normal((4, B, n)))
-            for what, call in (("aba", lambda: arm.derivative(0.0, x, (tau, np.zeros((1, n))))),
-                               ("Y", lambda: Y.output(0.0, None, u))):
+            aba, regressor = arm.derivative, Y.output
+            if impl == "native":
+                aba, regressor = native_kernel(arm, "derivative", B), native_kernel(Y, "output", B)
+            for what, call in (("aba", lambda: aba(0.0, x, (tau, np.zeros((1, n))))),
+                               ("Y", lambda: regressor(0.0, None, u))):
                 call()
                 reps = max(3, int(2000 / B))
                 t0 = time.perf_counter()
@@ -201,10 +213,11 @@ def kernels_against_pinocchio(robot: str = "panda", batches=(1, 16, 64, 256, 102
                     call()
                 timings[(what, impl)] = (time.perf_counter() - t0) / reps
         rows.append((B, timings))
-        print(f"B = {B:5d}: aba kernels {timings[('aba', 'kernels')] * 1e6 / B:8.2f} us/variant,"
-              f" pinocchio {timings[('aba', 'pinocchio')] * 1e6 / B:8.2f};  "
-              f"Y kernels {timings[('Y', 'kernels')] * 1e6 / B:8.2f} us/variant, pinocchio "
-              f"{timings[('Y', 'pinocchio')] * 1e6 / B:8.2f}", flush=True)
+        us = {key: value * 1e6 / B for key, value in timings.items()}
+        print(f"B = {B:5d} (us/variant): aba kernels {us[('aba', 'kernels')]:8.2f}, pinocchio "
+              f"{us[('aba', 'pinocchio')]:6.2f}, native {us[('aba', 'native')]:5.2f};  "
+              f"Y kernels {us[('Y', 'kernels')]:8.2f}, pinocchio {us[('Y', 'pinocchio')]:6.2f}, "
+              f"native {us[('Y', 'native')]:5.2f}", flush=True)
     return rows
 
 
@@ -226,13 +239,21 @@ def main(argv=None) -> int:
     import fwdstep
     d = fwdstep.load_diagram(args.diagram, overrides={"t_final": args.t_final})
     step, log_every = d.spec.simulation.step, d.spec.simulation.log_every
+    by_pinocchio = {f"{s.block.name}.implementation": "pinocchio" for s in d.schedule
+                    if s.block.type_name.startswith("URDF")}
+    d_pin = fwdstep.load_diagram(args.diagram, overrides={"t_final": args.t_final,
+                                                          **by_pinocchio})
+    c0 = time.process_time()
+    fwdstep.simulate(fwdstep.load_diagram(args.diagram, overrides={"t_final": 10 * step}))
+    print(f"native robot kernels traced and compiled (and a 10-step run): "
+          f"{time.process_time() - c0:.2f} s CPU (not in the ratios)")
     slotine_li = os.path.basename(args.diagram) in SLOTINE_LI
     hand = os.path.samefile(args.diagram, DIAGRAM) or slotine_li
     loop = hand_loop_slotine_li if slotine_li else hand_loop
     print(f"{os.path.basename(args.diagram)}, {args.t_final:g} s at step {step:g}, "
           f"{d.spec.simulation.solver}, {d.n_states} states; {args.repeats} interleaved repeats "
           f"(CPU time); load average {os.getloadavg()[0]:.2f}")
-    wall_f, wall_h, wall_c = [], [], []
+    wall_f, wall_p, wall_h, wall_c = [], [], [], []
     if args.compiled:
         t0, c0 = time.perf_counter(), time.process_time()
         fwdstep.simulate(fwdstep.load_diagram(args.diagram, overrides={"t_final": 10 * step}),
@@ -245,6 +266,9 @@ def main(argv=None) -> int:
         t0 = clock()
         result = fwdstep.simulate(d)
         wall_f.append(clock() - t0)
+        t0 = clock()
+        result_pin = fwdstep.simulate(d_pin)
+        wall_p.append(clock() - t0)
         if args.compiled:
             t0 = clock()
             compiled = fwdstep.simulate(d, backend="compiled")
@@ -253,8 +277,15 @@ def main(argv=None) -> int:
             t0 = clock()
             _, e_hand = loop(d, args.t_final, step, log_every)
             wall_h.append(clock() - t0)
-    med_f = statistics.median(wall_f)
+    med_f, med_p = statistics.median(wall_f), statistics.median(wall_p)
+    worst_pin = max(float(np.nanmax(np.abs(result_pin[n] - result[n]))
+                          / max(1.0, float(np.nanmax(np.abs(result_pin[n])))))
+                    for n in result.names)
     print(f"fwdstep simulate : median {med_f:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_f)})")
+    print(f"fwdstep, pinocchio: median {med_p:.2f} s  "
+          f"({', '.join(f'{w:.2f}' for w in wall_p)}); native / pinocchio = "
+          f"{med_f / med_p:.2f}; largest difference of a logged signal {worst_pin:.1e} of "
+          f"its scale")
     if args.compiled:
         med_c = statistics.median(wall_c)
         worst = max(float(np.nanmax(np.abs(compiled[n] - result[n]))
@@ -269,8 +300,9 @@ def main(argv=None) -> int:
     agreement = float(np.abs(e_diagram - e_hand).max())
     med_h = statistics.median(wall_h)
     print(f"hand pinocchio   : median {med_h:.2f} s  ({', '.join(f'{w:.2f}' for w in wall_h)})")
-    print(f"ratio fwdstep / hand = {med_f / med_h:.2f}  (issue 25 target <= 1.0); load "
-          f"average {os.getloadavg()[0]:.2f}")
+    print(f"ratio fwdstep / hand = {med_f / med_h:.2f}  (issue 25 target <= 1.0; with "
+          f"implementation: pinocchio {med_p / med_h:.2f}); load average "
+          f"{os.getloadavg()[0]:.2f}")
     if args.compiled:
         print(f"ratio compiled / hand = {statistics.median(wall_c) / med_h:.3f}  "
               f"(issue 25 target <= 0.25)")
