@@ -242,6 +242,59 @@ def seal_folder(folder: str) -> None:
         warn(f"compiled-code cache: could not record hashes ({_describe(exc)})")
 
 
+# ---------------------------------------------------------------- native block kernels
+#: machine code of the NumPy path's native block kernels (``fwdstep.compiled.native_block``):
+#: ``<cache>/native/<key>.o`` and its SHA-256 in ``<key>.sha256``, the key hashing the LLVM IR
+#: and the target (so the IR, not the block, names the code)
+NATIVE = "native"
+
+
+def _native_paths(key: str):
+    base = cache_dir()
+    folder = os.path.join(base, NATIVE)
+    for path in (base, folder):
+        if private_dir(path) is not None:
+            return None
+    return folder, os.path.join(folder, f"{key}.o"), os.path.join(folder, f"{key}.sha256")
+
+
+def native_object(key: str) -> bytes | None:
+    """The object code stored under ``key``, if the cache is safe to use and the file
+    matches the hash recorded when it was written; else None (a mismatching entry is
+    removed with one warning line)."""
+    paths = _native_paths(key)
+    if paths is None:
+        return None
+    _, obj, digest = paths
+    try:
+        data, recorded = _read(obj), _read(digest).decode("ascii").strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    if _sha(data) == recorded:
+        return data
+    warn(f"native kernel cache entry {key[:16]} does not match its recorded hash; "
+         "compiling afresh")
+    for path in (obj, digest):
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+    return None
+
+
+def store_native_object(key: str, data: bytes) -> None:
+    """Keep object code under ``key`` (the file, then its hash); faults only warn."""
+    paths = _native_paths(key)
+    if paths is None:
+        return
+    folder, obj, digest = paths
+    try:
+        _atomic_write(folder, obj, data)
+        _atomic_write(folder, digest, _sha(data).encode("ascii"))
+    except OSError as exc:
+        warn(f"native kernel cache: could not store ({_describe(exc)})")
+
+
 def _record(folder: str, target: str, sums: dict) -> None:
     """Write the hashes ``sums`` to ``target`` atomically, unless it already holds them."""
     try:

@@ -121,17 +121,31 @@ def target_machine():
                                         codemodel="jitdefault")
 
 
-def engine_of(text: str):
+def target_identity() -> str:
+    """What machine code depends on besides the IR: LLVM, the host triple and CPU."""
+    target_machine()
+    target, cpu, features = _TARGET[0]
+    return f"{llvm.llvm_version_info} {target.triple} {cpu} {features}"
+
+
+def engine_of(text: str, object_code: bytes | None = None, on_object=None):
     """An MCJIT engine holding the machine code of the IR ``text`` (verified, optimised at
-    level 2 for the host CPU, finalised); keep it alive as long as its functions are used."""
+    level 2 for the host CPU, finalised); keep it alive as long as its functions are used.
+    ``object_code``: that machine code as made before (``on_object(bytes)`` receives it when
+    it is made here): the optimisation and code generation are skipped."""
     tm = target_machine()
     mod = llvm.parse_assembly(text)
     mod.verify()
     mod.triple = tm.triple
     mod.data_layout = str(tm.target_data)
-    pto = llvm.create_pipeline_tuning_options(speed_level=2)
-    pb = llvm.create_pass_builder(tm, pto)
-    pb.getModulePassManager().run(mod, pb)
+    if object_code is None:
+        pto = llvm.create_pipeline_tuning_options(speed_level=2)
+        pb = llvm.create_pass_builder(tm, pto)
+        pb.getModulePassManager().run(mod, pb)
     engine = llvm.create_mcjit_compiler(mod, tm)
+    if object_code is not None or on_object is not None:
+        engine.set_object_cache(
+            notify_func=None if on_object is None else (lambda _, data: on_object(bytes(data))),
+            getbuffer_func=lambda _: object_code)
     engine.finalize_object()
     return engine

@@ -165,3 +165,35 @@ class _Refused(Block):
 
 def test_a_kernel_the_tracer_refuses_keeps_the_method():
     assert native_kernel(_Refused("r"), "output", 1) is None
+
+
+def test_the_object_code_is_cached_on_disk_and_checked(tmp_path, monkeypatch, capsys):
+    """A second process (here: the memo emptied) loads the machine code from the private
+    cache instead of compiling; an entry that does not match its hash is compiled afresh,
+    with one warning line."""
+    import glob as globbing
+
+    from fwdstep.compiled import llvm_ir, native_block
+    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(native_block, "_compiled", {})
+    Y = URDFRegressor("Y", robot="ur5")
+    rng = np.random.default_rng(2)
+    u = tuple(rng.uniform(-1.0, 1.0, (4, 1, 6)))
+    want = Y.output(0.0, None, u)[0]                 # pinocchio
+    _close(native_kernel(Y, "output", 1)(0.0, None, u)[0], want)
+    (obj,) = globbing.glob(str(tmp_path / "native" / "*.o"))
+
+    def no_compile(*args, **kwargs):
+        raise AssertionError("compiled although cached")
+
+    monkeypatch.setattr(native_block, "_compiled", {})
+    with monkeypatch.context() as m:
+        m.setattr(llvm_ir.llvm, "create_pass_builder", no_compile)
+        _close(native_kernel(Y, "output", 1)(0.0, None, u)[0], want)
+    with open(obj, "r+b") as fh:                       # a changed entry
+        fh.seek(100)
+        fh.write(b"\xff\xff\xff\xff")
+    monkeypatch.setattr(native_block, "_compiled", {})
+    capsys.readouterr()
+    _close(native_kernel(Y, "output", 1)(0.0, None, u)[0], want)
+    assert "does not match its recorded hash" in capsys.readouterr().err
