@@ -7,7 +7,8 @@
 The variants of diagrams/robots/panda_slotine_li.yaml draw, from a seeded Latin hypercube,
 ``payload`` in [0, 2] kg (a point mass 0.1 m beyond the hand frame, URDFArm), ``Lambda`` in
 [3, 8] and ``Gamma`` in [0.5, 2].  ``fwdstep.run_sweep(..., workers=1)`` runs them as one
-batch, on the NumPy path (pinocchio below 512 variants, ``implementation: auto``) and on the
+batch, on the NumPy path (``implementation: auto``: the robot blocks' kernels as native code,
+or pinocchio below 512 variants without llvmlite) and on the
 compiled backend (``NUMBA_NUM_THREADS=1`` is set here: one core).  The hand loop is
 ``robots_benchmark.hand_loop_slotine_li``'s RK4 loop calling pinocchio directly, run once per
 variant with that variant's gains and a pinocchio model with the payload appended by
