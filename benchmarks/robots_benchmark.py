@@ -27,7 +27,7 @@ Theorem 1 (above) and for Slotine-Li (diagrams/robots/{panda,ur5}_slotine_li.yam
 with the plant's URDF damping), skipped for any other.
 
     python benchmarks/robots_benchmark.py --compiled --diagram diagrams/robots/panda_slotine_li.yaml
-    python benchmarks/robots_benchmark.py --kernels      # NumPy path: kernels vs pinocchio per batch
+    python benchmarks/robots_benchmark.py --kernels      # per batch: kernels, pinocchio, native
 
 The NumPy path runs the robot blocks as ``implementation: auto`` makes them run: their kernels
 compiled to native code (fwdstep/compiled/native_block.py; "fwdstep simulate"), and, for

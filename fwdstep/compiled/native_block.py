@@ -1,7 +1,8 @@
 """One block's kernel as native code, for the NumPy path (``fwdstep.run.program``).
 
 A block that declares ``native_kernels`` (``fwdstep.core.block.Block``; the robot blocks of
-blocks/urdf.py: ``URDFArm``'s derivative, ``URDFRegressor``'s output) and wants them for a
+blocks/urdf.py: ``URDFArm``'s derivative, ``URDFRegressor``'s and ``URDFFrame``'s output) and
+wants them for a
 batch (``Block.native_wanted``) has that kernel traced on symbols (``fwdstep.compiled.scalarize``,
 the tracer of the compiled backend) and compiled with LLVM (``fwdstep.compiled.llvm_ir``, the
 emitter the compiled stage uses), without numba.  The NumPy path's generated program calls
@@ -27,8 +28,9 @@ method does.
 Tracing costs 0.02-0.06 s per robot kernel, once per process (memoised by everything the
 trace reads); compiling 0.1-0.2 s, once per machine: the object code is kept in the
 compiled-code cache (``fwdstep.compiled.compiled_cache``: private folder, SHA-256 checked)
-under the hash of the IR and the target, and loaded from there by later processes.  Without llvmlite this module does not import and the blocks
-run their Python methods; a kernel the tracer refuses (``Untraceable``) does the same.
+under the hash of the IR and the target, and loaded from there by later processes.  Without
+llvmlite this module does not import and the blocks run their Python methods; a kernel the
+tracer refuses (``Untraceable``) does the same.
 """
 from __future__ import annotations
 
@@ -259,10 +261,16 @@ class NativeKernel:
 
 def native_kernel(block, which: str, batch: int):
     """A ``NativeKernel`` of ``block``'s kernel ``which`` for ``batch`` variants, or None
-    when the tracer refuses it (the block's method runs then)."""
+    when the tracer refuses it, or LLVM fails (one warning line: a fault of fwdstep's, not
+    the diagram's); the block's method runs then, with the same numbers."""
     if block.kernels is None or getattr(block.kernels, which, None) is None:
         return None
     try:
         return NativeKernel(block, which, batch)
     except sz.Untraceable:
+        return None
+    except RuntimeError as exc:                       # llvmlite's parse, verify, compile
+        reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+        compiled_cache.warn(f"block {block.name!r}: its native {which} kernel did not "
+                            f"compile ({reason}); running its method")
         return None

@@ -300,8 +300,8 @@ def build_program(d, n_rows: int, fuse: bool = True, alloc=None, sampled: tuple 
                 call = kernel_call(blk, blk.kernels.output, state_view(buffer, op.state),
                                    op.inputs)
             else:
-                call = (f"{src.const('out', method(blk, 'output'))}(ts, {state_view(buffer, op.state)}, "
-                        f"{args(op.inputs)})")
+                call = (f"{src.const('out', method(blk, 'output'))}(ts, "
+                        f"{state_view(buffer, op.state)}, {args(op.inputs)})")
             if time_only(blk) and direct(blk, "output"):
                 lines.extend(memo(blk, "r", call))
                 call = "r"

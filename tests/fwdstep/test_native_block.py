@@ -197,3 +197,18 @@ def test_the_object_code_is_cached_on_disk_and_checked(tmp_path, monkeypatch, ca
     capsys.readouterr()
     _close(native_kernel(Y, "output", 1)(0.0, None, u)[0], want)
     assert "does not match its recorded hash" in capsys.readouterr().err
+
+
+def test_an_llvm_failure_warns_once_and_keeps_the_method(monkeypatch, capsys):
+    from fwdstep.compiled import llvm_ir, native_block
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("LLVM ERROR: out of registers\nmore")
+
+    monkeypatch.setattr(native_block, "_compiled", {})
+    monkeypatch.setattr(llvm_ir, "engine_of", broken)
+    monkeypatch.setattr(native_block.compiled_cache, "native_object", lambda key: None)
+    assert native_kernel(URDFRegressor("Y", robot="ur5"), "output", 1) is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["fwdstep: warning: block 'Y': its native output kernel did not compile "
+                   "(LLVM ERROR: out of registers); running its method"]
