@@ -378,6 +378,12 @@ class TwoLinkArm(MechanicalPlant):
         "qdot0": Param("array", 0.0, "initial joint velocity [qdot1, qdot2] (rad/s)"),
     }
     example = {"q0": [0.1, -0.2], "qdot0": [0.0, 0.5], "gravity": 9.81}
+    #: NumPy path: the derivative as native code when llvmlite is installed (Block.native_kernels;
+    #: the same kernel, traced and compiled for the arm: the NumPy kernel makes ~40 array calls
+    #: per stage).  Whole run of slotine_li.yaml, CPU medians of interleaved repeats in one
+    #: process: 0.93 (1 variant, 10 s), 0.82 (256), 0.87 (4096, 1 s), with the Regressor's;
+    #: a fresh process's whole run is unchanged (theorem1.yaml) or 3 % faster (slotine_li.yaml)
+    native_kernels = ("derivative",)
 
     @staticmethod
     def parameter_vector(**params) -> np.ndarray:
@@ -509,6 +515,8 @@ class Regressor(Block):
         "l1": Param("float", 0.0, "length of link 1 (m), for p = 5"),
     }
     example = {"gravity": 9.81}
+    #: NumPy path: native code when llvmlite is installed (see TwoLinkArm.native_kernels)
+    native_kernels = ("output",)
 
     def setup(self, gravity, p, l1):
         self._gravity = gravity != 0.0

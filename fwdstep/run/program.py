@@ -450,13 +450,15 @@ PLUGGED_NATIVE = "fwdstep.compiled.native_block"
 def native_methods(d) -> dict:
     """id(block) -> {"output" or "derivative": its native kernel} for the blocks of ``d``
     that want native kernels at its batch size (``Block.native_wanted``) and whose kernels
-    compile; {} without the plugged module."""
+    compile; {} without the plugged module.  A method replaced on the block instance (a
+    wrapper that counts or traces calls) is called as it is, never bypassed."""
     wanted, seen = [], set()
     for st in list(d.schedule) + list(d.stateful):
         blk = st.block
         if id(blk) not in seen:
             seen.add(id(blk))
-            wanted += [(blk, which) for which in blk.native_wanted(d.batch)]
+            wanted += [(blk, which) for which in blk.native_wanted(d.batch)
+                       if which not in blk.__dict__]   # (a method wrapped on the instance runs)
     if not wanted:
         return {}
     try:
