@@ -170,52 +170,103 @@ _PARSED: dict = {}
 
 
 def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
-    """Richardson differences of the loaded diagram (module docstring) for every column."""
-    from fwdstep.run.evaluate import initial_state
-    from fwdstep.run.events import plan_events
-    from fwdstep.structure.compiler import compile_spec, structure_signature
-    from fwdstep.structure.spec import load_spec
-    base_signature = structure_signature(d.blocks)
+    """Richardson differences of the loaded diagram (module docstring) for every column;
+    each moved value is found by the loader's light path where it applies
+    (``_moved_blocks``)."""
+    from fwdstep.structure.compiler import structure_signature
     dp: dict = {}
     dx0 = np.zeros((d.n_states, P))
     cache = _PARSED                   # each file parsed once for all the moved loads
     while len(cache) > 16:            # (and for the next call: tuning calls again and again)
         cache.pop(next(iter(cache)))
+    base = {}
+    from fwdstep.structure.spec import spec_document
+    try:
+        doc = spec_document(d.spec, cache)
+    except (DiagramError, OSError):
+        doc = None                    # (the whole loads say what is wrong)
 
-    def start_state(dd):
-        ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
-        return initial_state(dd, event=ev.start if ev is not None else None)[0]
+    def base_signature():
+        if not base:
+            base["sig"] = structure_signature(d.blocks)
+        return base["sig"]
 
     for par in params:
         for k, element in enumerate(par.elements):
             col = par.columns.start + k
             h = DIFFERENCE_STEP * max(1.0, abs(float(par.value.reshape(-1)[element])))
-            moved = []
-            for off in _OFFSETS:
-                overrides = dict(d.spec.overrides)
-                overrides[par.name] = _moved_value(par, element, off * h)
-                try:
-                    dd = compile_spec(load_spec(d.spec.file, overrides, cache))
-                except DiagramError as exc:
-                    raise ConfigError(f"sensitivity parameter '{par.text}' cannot be moved by "
-                                      f"{off * h:.3g}: {exc}", file=d.file) from None
-                _same_structure(d, dd, par, base_signature, structure_signature)
-                moved.append(dd)
-            for j, blk in enumerate(d.blocks):
+            moved = [_moved_blocks(d, par, _moved_value(par, element, off * h), off * h,
+                                   cache, base_signature, doc) for off in _OFFSETS]
+            names = set().union(*(m for m, _ in moved))
+            for blk in d.blocks:
+                if blk.name not in names:
+                    continue
                 for name, arr in vars(blk.p).items():
-                    vals = [np.asarray(getattr(dd.blocks[j].p, name), dtype=float)
-                            for dd in moved]
+                    vals = [np.asarray(getattr(m.get(blk.name, blk).p, name), dtype=float)
+                            for m, _ in moved]
                     if all(np.array_equal(v, arr) for v in vals):
                         continue
                     g = _richardson(vals, h).reshape(-1)
                     dp.setdefault((blk.name, name), np.zeros((g.size, P)))[:, col] = g
             with np.errstate(all="ignore"):
-                dx0[:, col] = _richardson([start_state(dd) for dd in moved], h)
+                dx0[:, col] = _richardson([x0 for _, x0 in moved], h)
     if not dp and not dx0.any():
         names = ", ".join(p.text for p in params)
         raise ConfigError(f"sensitivity parameters {names} reach no block parameter and no "
                           "initial state (nothing in the run depends on them)", file=d.file)
     return LoadedDerivative(dp, dx0)
+
+
+def _start_state(dd) -> np.ndarray:
+    from fwdstep.run.evaluate import initial_state
+    from fwdstep.run.events import plan_events
+    ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
+    return initial_state(dd, event=ev.start if ev is not None else None)[0]
+
+
+def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
+                  doc=None) -> tuple:
+    """The diagram with parameter ``par`` set to ``value``: (block name -> its block, for
+    the blocks that may differ from ``d``'s; the initial state).  The loader's light path
+    (``fwdstep.structure.spec.reevaluate_blocks``: the parameters and block entries that
+    read the moved value, evaluated again by the loader's code; those blocks built anew,
+    the rest of ``d`` shared) where it applies and the rebuilt blocks keep their
+    structure; else the whole file loaded again (which says what the parameter changes
+    beyond the run-time arrays)."""
+    import copy
+    import dataclasses
+
+    from fwdstep.structure.compiler import _block_signature, compile_spec, \
+        structure_signature
+    from fwdstep.structure.graph import _instantiate_one
+    from fwdstep.structure.spec import load_spec, reevaluate_blocks
+    try:
+        entries = None if doc is None else reevaluate_blocks(d.spec, {par.name: value},
+                                                             cache, doc)
+        rebuilt = {} if entries is None else {
+            name: _instantiate_one(e) for name, e in entries.items()}
+        by_name = {blk.name: blk for blk in d.blocks}
+        if entries is not None and all(
+                name in by_name and _block_signature(b) == _block_signature(by_name[name])
+                for name, b in rebuilt.items()):
+            steps = {id(st): dataclasses.replace(st, block=rebuilt[st.block.name])
+                     for st in d.schedule if st.block.name in rebuilt}
+            dd = copy.copy(d)
+            dd.schedule = [steps.get(id(st), st) for st in d.schedule]
+            dd.stateful = [steps.get(id(st), st) for st in d.stateful]
+            dd.x0 = d.x0.copy()
+            for st in steps.values():
+                if st.state is not None:
+                    dd.x0[:, st.state] = np.broadcast_to(st.block.x0, (1, st.block.n_states))
+            return rebuilt, _start_state(dd)
+        overrides = dict(d.spec.overrides)
+        overrides[par.name] = value
+        dd = compile_spec(load_spec(d.spec.file, overrides, cache))
+    except DiagramError as exc:
+        raise ConfigError(f"sensitivity parameter '{par.text}' cannot be moved by "
+                          f"{delta:.3g}: {exc}", file=d.file) from None
+    _same_structure(d, dd, par, base_signature(), structure_signature)
+    return {blk.name: blk for blk in dd.blocks}, _start_state(dd)
 
 
 def _same_structure(d, dd, par, base_signature, signature) -> None:

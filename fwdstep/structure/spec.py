@@ -180,6 +180,95 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
     return namespace
 
 
+def spec_document(spec: DiagramSpec, cache: dict | None = None) -> LineDict:
+    """The top-level document ``spec`` was loaded from (its text, or its file as read now;
+    ``cache``: see ``_read_document``)."""
+    text = spec.sources[0].text if spec.sources else None
+    if text is None:
+        return _read_document(spec.file, cache)
+    return _check_document(parse_yaml_text(text, file=spec.file), spec.file)
+
+
+def reevaluate_blocks(spec: DiagramSpec, changes: dict, cache: dict | None = None,
+                      doc: LineDict | None = None):
+    """The loader's light path for a moved number (``fwdstep.analysis.sensitivity``): the
+    top-level block entries of ``spec`` whose parameters read what ``changes`` moves
+    (``--set`` names on top of ``spec.overrides``: top-level parameters, ``BLOCK.PARAM``
+    paths), evaluated again by the loader's own code (``resolve_parameters`` for the
+    parameters that depend on the moved ones, the others kept as loaded;
+    ``_Level._add_block`` for the block parameters that read them), every other value as
+    ``spec`` has it.  Returns ``{block name: BlockEntry}`` (the entry's other parameters,
+    shapes the wiring fixed included, as loaded), or None when the change reaches
+    anything else (a subsystem, the simulation settings, the metrics, the log): the caller
+    loads the whole file then.  The structure is not checked here (the caller compares
+    the rebuilt blocks' signatures with the loaded ones).  ``doc``: ``spec_document``'s,
+    read once by a caller that moves many values (it is not changed here)."""
+    path = spec.file
+    if doc is None:
+        doc = spec_document(spec, cache)
+    raw = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
+    moved, sim, log, paths = split_overrides(changes, raw)
+    base, _, _, base_paths = split_overrides(spec.overrides, raw)
+    if sim or log is not None:
+        return None
+    values = dict(raw)
+    values.update(base)
+    values.update(moved)
+    changed = set(moved)
+    grown = True
+    while grown:                     # the parameters that read a moved one, transitively
+        grown = False
+        for name, value in values.items():
+            if name not in changed and any(names_in(t) & changed for t in _strings_in(value)):
+                changed.add(name)
+                grown = True
+
+    def reads(value) -> bool:
+        if isinstance(value, dict):
+            return any(reads(v) for v in value.values())
+        return any(names_in(t) & changed for t in _strings_in(value))
+
+    for section in ("simulation", "metrics", "log", "plots"):
+        if reads(doc.get(section)):
+            return None
+    ns = resolve_parameters(raw, {k: values[k] for k in changed}, path,
+                            preset={k: v for k, v in spec.parameters.items()
+                                    if k not in changed}, line=_line(doc, "parameters"))
+    sets = dict(base_paths)
+    sets.update(paths)
+    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
+                   sets=sets)
+    entries = {e.name: e for e in spec.blocks}
+    blocks = doc.get("blocks") if isinstance(doc.get("blocks"), dict) else {}
+    out = {}
+    for name, body in blocks.items():
+        mine = {k[1:]: v for k, v in sets.items() if k[0] == name}
+        if not isinstance(body, dict):
+            continue
+        if body.get("type") == "subsystem":
+            if reads(body.get("parameters")) or any(
+                    tuple((name,) + r) in paths or reads(v) for r, v in mine.items()):
+                return None
+            continue
+        keys = [k for k in body if k != "type" and (k,) not in mine and reads(body[k])]
+        keys += [r[0] for r, v in mine.items() if (name,) + r in paths or reads(v)]
+        if not keys:
+            continue
+        if name not in entries:
+            return None
+        small = LineDict({k: v for k, v in body.items() if k == "type" or k in keys})
+        small.line, small.key_lines = body.line, dict(getattr(body, "key_lines", {}))
+        level._add_block(name, small, _line(blocks, name),
+                         {r: v for r, v in mine.items() if r[0] in keys})
+        got = level.blocks.pop()
+        old = entries[name]
+        params = dict(old.params)
+        params.update(got.params)
+        out[name] = BlockEntry(old.name, old.type_name, old.cls, params, old.file, old.line,
+                               old.key_lines)
+    return out
+
+
 def _blame_override(exc: DiagramError, name: str, uses: dict, overrides: dict, raw,
                     file: str) -> DiagramError:
     """A parameter that fails only because a ``--set`` value reached it: the error names the
