@@ -34,6 +34,7 @@ a parameter that reaches a kernel other than as one of its arguments.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time as _time
 
@@ -63,11 +64,18 @@ class VariationalStage(backend_numba._ScalarStage):
         self.seeds: dict = {}             # leaf node number -> {direction: node}
         self._moving: dict = {}           # (id(group op), i, j) -> its leaf
         self.sens_columns: list = []
+        #: (column of W, its leaf's node number, where its value comes from): the entries
+        #: that move and their seeds, ("p", block, name, entry) / ("dp", block, name,
+        #: entry, direction) / ("M", op, i, j) / ("dM", op, i, j, direction), op the
+        #: group's position in the ops (``rebound``)
+        self.bindings: list = []
+        self._position = {id(op): k for k, (_, op, _) in enumerate(ops)}
         super().__init__(d, shapes, ops, fused, d.constant_signals, logged, unlogged,
                          n_stages)
 
-    def _moving_leaf(self, values, tangent):
-        """A parameter entry that moves: a column of W of its own, seeded."""
+    def _column(self, values, source):
+        """A run-time value of its own: a column of W (never folded into a constant nor
+        shared with an equal entry), whose value comes from ``source`` (``bindings``)."""
         values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
         if len(self.columns) >= backend_numba.MAX_SCALAR_PARAMS:
             raise sz.Untraceable(f"more than {backend_numba.MAX_SCALAR_PARAMS} parameter "
@@ -75,10 +83,17 @@ class VariationalStage(backend_numba._ScalarStage):
         j = len(self.columns)
         self.columns.append(values)
         node = self.tr.leaf(f"p{j}", True, values)
-        # the seeds are parameter entries too (not constants written into the code), so
+        self.bindings.append((j, node.n, source))
+        return node
+
+    def _moving_leaf(self, values, tangent, source):
+        """A parameter entry that moves: a column of W of its own, seeded."""
+        node = self._column(values, source)
+        # the seeds are run-time values too (not constants written into the code), so
         # another value of the parameter runs the same machine code
-        self.seeds[node.n] = {c: self._leaf(np.array([tangent[c]])) for c in range(self.P)
-                              if tangent[c] != 0.0}
+        self.seeds[node.n] = {c: self._column(np.array([tangent[c]]), ("d" + source[0],)
+                                              + source[1:] + (c,))
+                              for c in range(self.P) if tangent[c] != 0.0}
         return node
 
     def _kernel_param(self, blk, name: str):
@@ -89,8 +104,8 @@ class VariationalStage(backend_numba._ScalarStage):
         out = np.empty((1,) + arr.shape[1:], dtype=object)
         for k, idx in enumerate(np.ndindex(*arr.shape[1:])):
             values = arr[(slice(None),) + idx]
-            out[(0,) + idx] = (self._moving_leaf(values, g[k]) if g[k].any()
-                               else self._leaf(values))
+            out[(0,) + idx] = (self._moving_leaf(values, g[k], ("p", blk.name, name, k))
+                               if g[k].any() else self._leaf(values))
         return out
 
     def _group_mask(self, op, M):
@@ -104,8 +119,40 @@ class VariationalStage(backend_numba._ScalarStage):
             return super()._group_entry(op, M, i, j)
         key = (id(op), i, j)
         if key not in self._moving:
-            self._moving[key] = self._moving_leaf(M[:, i, j], dm[:, i, j])
+            self._moving[key] = self._moving_leaf(M[:, i, j], dm[:, i, j],
+                                                  ("M", self._position[id(op)], i, j))
         return self._moving[key]
+
+    def rebound(self, d, dp: dict, ops, dM: dict):
+        """This stage for other values of the moving entries and their seeds (the same
+        structure, unmoved values and zero patterns: ``variational_stage``'s key): a copy
+        sharing the graph and the machine code, with W's columns of ``bindings`` taken from
+        ``d``'s blocks, ``ops``' fused matrices, ``dp`` and ``dM``; None when a number
+        the code was written for changes with them (``Trace.decisions``: trace again)."""
+        blocks = {blk.name: blk for blk in d.blocks}
+        W = self.W.copy()
+        leaves = {}
+        for j, n, src in self.bindings:
+            kind = src[0]
+            if kind == "p":
+                arr = np.asarray(getattr(blocks[src[1]].p, src[2]), dtype=np.float64)
+                v = arr.reshape(arr.shape[0], -1)[:, src[3]]
+            elif kind == "dp":
+                v = np.array([dp[(src[1], src[2])][src[3], src[4]]])
+            elif kind == "M":
+                v = np.asarray(ops[src[1]][1].M, dtype=np.float64)[:, src[2], src[3]]
+            else:
+                v = np.array([dM[id(ops[src[1]][1])][src[4], src[2], src[3]]])
+            if v.size != len(self.columns[j]):
+                return None
+            W[:v.size, j] = v
+            leaves[n] = v
+        if not self.tr.decisions_hold(leaves):
+            return None
+        new = copy.copy(self)
+        new.W, new.dp, new.dM = W, dp, dM
+        new.columns = [W[:len(c), j] for j, c in enumerate(self.columns)]
+        return new
 
     def _extend(self, x, sig, logs, shapes, roots) -> None:
         tr, N, P = self.tr, self.N, self.P
@@ -138,13 +185,16 @@ class VariationalStage(backend_numba._ScalarStage):
         return d.n_states * (1 + self.P)
 
 
-def group_derivatives(d, ops, shapes, dp: dict, P: int) -> dict:
+def group_derivatives(d, ops, shapes, dp: dict, P: int, fused=None) -> dict:
     """d M / d column for every fused group whose blocks move: id(op) -> (P, rows, cols),
-    Richardson central differences of the fusion of the moved blocks (module docstring)."""
+    Richardson central differences of the fusion of the moved blocks (module docstring).
+    ``fused``: the names of the blocks in groups (``_ops_for``'s); a column that moves
+    none of them is not differenced (its dM is 0)."""
     groups = [(k, op) for k, (kind, op, _) in enumerate(ops) if kind == "group"]
     by_block: dict = {}
     for (blk, name), g in dp.items():
-        by_block.setdefault(blk, {})[name] = g
+        if fused is None or blk in fused:
+            by_block.setdefault(blk, {})[name] = g
     if not groups or not by_block:
         return {}
     out = {id(op): np.zeros((P,) + np.shape(op.M)[1:]) for _, op in groups}
@@ -194,16 +244,52 @@ def _check_calls(ops, dp: dict) -> None:
                                      "argument")
 
 
+#: traced variational stages by ``variational_stage``'s key: (the kernels the key names
+#: by id, held so that their ids are not reused; the stage)
+_STAGES: dict = {}
+#: how many the memo keeps (a stage holds its graph: a few MB for the Panda)
+MAX_STAGES = 16
+
+
 def variational_stage(d, dp: dict, P: int) -> VariationalStage:
-    """The compiled-backend stage of ``d`` with its tangents; ``Untraceable`` when not."""
+    """The compiled-backend stage of ``d`` with its tangents; ``Untraceable`` when not.
+    Memoised in the process by everything the trace reads EXCEPT the values of the entries
+    that move and of their seeds (run-time values of their own: ``VariationalStage._column``):
+    the structure, the kernels and their statics, the unmoved values, which entries move
+    and the zero patterns of dp and dM.  A tuning's next evaluation (another value) then
+    reuses the graph and the machine code with W's moving columns rebound
+    (``VariationalStage.rebound``), unless a number the code was written for moves with
+    them (then it is traced again)."""
     shapes = [tuple(s) for s in d.signal_shapes]
     ops, fused = backend_numba._ops_for(d.schedule, shapes, d.constant_signals)
     _check_calls(ops, dp)
-    dM = group_derivatives(d, ops, shapes, dp, P)
+    dM = group_derivatives(d, ops, shapes, dp, P, fused)
     from fwdstep.run.finite import unlogged_signals
     logged = [d.signal_index[name] for name in d.logged]
-    return VariationalStage(d, dp, dM, P, shapes, ops, fused, logged, unlogged_signals(d),
-                            TABLEAUX[d.spec.simulation.solver].stages)
+    unlogged = unlogged_signals(d)
+    S = TABLEAUX[d.spec.simulation.solver].stages
+    moving_p = {key: np.any(g != 0.0, axis=1) for key, g in dp.items()}
+    moving_M = {key: np.any(dm != 0.0, axis=0) for key, dm in dM.items()}
+    h, held = backend_numba.stage_key(d, shapes, ops, fused, logged, unlogged, S, moving_p,
+                                      moving_M)
+    h.update(repr(("variational", P)).encode())
+    for (blk, name), g in sorted(dp.items()):
+        h.update(repr((blk, name, g.shape)).encode() + np.ascontiguousarray(g != 0.0).data)
+    for k, (_, op, _) in enumerate(ops):
+        if id(op) in dM:
+            h.update(repr(("dM", k)).encode() + np.ascontiguousarray(dM[id(op)] != 0.0).data)
+    key = h.digest()
+    got = _STAGES.get(key)
+    if got is not None:
+        st = got[1].rebound(d, dp, ops, dM)
+        if st is not None:
+            return st
+    st = VariationalStage(d, dp, dM, P, shapes, ops, fused, logged, unlogged, S)
+    _STAGES.pop(key, None)
+    _STAGES[key] = (held, st)
+    while len(_STAGES) > MAX_STAGES:
+        _STAGES.pop(next(iter(_STAGES)))
+    return st
 
 
 class SensitivityBackend(CompiledBackend):
@@ -231,7 +317,8 @@ class SensitivityBackend(CompiledBackend):
 
 
 def not_compiled(d) -> str | None:
-    """Why the compiled backend cannot integrate ``d``'s sensitivities (before tracing)."""
+    """Why the compiled backend cannot integrate ``d``'s sensitivities (before tracing; a
+    block the compiled backend refuses is refused here)."""
     from fwdstep.run.crossings import crossing_steps
     from fwdstep.run.events import plan_events
     located = crossing_steps(d)
@@ -242,7 +329,8 @@ def not_compiled(d) -> str | None:
     plan = plan_events(d, cfg.step, cfg.n_steps)
     if plan is not None and (plan.discrete or (plan.final is not None and plan.final.updates)):
         return "discrete blocks update at sample instants"
-    return numpy_instead(d)
+    backend_numba.check_compilable(d)
+    return None
 
 
 def run_compiled(d, dp: dict, P: int, S0, progress=None, on_compile=None,
@@ -263,7 +351,8 @@ def run_compiled(d, dp: dict, P: int, S0, progress=None, on_compile=None,
         backend = SensitivityBackend(d, plan_events(d, cfg.step, cfg.n_steps), stage, S0,
                                      on_compile)
     except sz.Untraceable as exc:
-        return f"its variational stage is not compiled ({exc})"
+        # (asked only now: whether the diagram's own stage traces costs a trace)
+        return numpy_instead(d) or f"its variational stage is not compiled ({exc})"
     r = run(d, backend, progress, None, wall0)
     r.backend = "compiled"
     return r, backend.sensitivities(len(r.t))

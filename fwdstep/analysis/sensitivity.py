@@ -174,29 +174,32 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
     each moved value is found by the loader's light path where it applies
     (``_moved_blocks``)."""
     from fwdstep.structure.compiler import structure_signature
+    from fwdstep.structure.spec import Reevaluation
     dp: dict = {}
     dx0 = np.zeros((d.n_states, P))
     cache = _PARSED                   # each file parsed once for all the moved loads
     while len(cache) > 16:            # (and for the next call: tuning calls again and again)
         cache.pop(next(iter(cache)))
     base = {}
-    from fwdstep.structure.spec import spec_document
-    try:
-        doc = spec_document(d.spec, cache)
-    except (DiagramError, OSError):
-        doc = None                    # (the whole loads say what is wrong)
 
     def base_signature():
         if not base:
             base["sig"] = structure_signature(d.blocks)
         return base["sig"]
 
+    light: dict = {}
     for par in params:
+        if par.name not in light:
+            try:
+                light[par.name] = Reevaluation(d.spec, [par.name], cache)
+            except (DiagramError, OSError):
+                light[par.name] = None        # (the whole loads say what is wrong)
         for k, element in enumerate(par.elements):
             col = par.columns.start + k
             h = DIFFERENCE_STEP * max(1.0, abs(float(par.value.reshape(-1)[element])))
             moved = [_moved_blocks(d, par, _moved_value(par, element, off * h), off * h,
-                                   cache, base_signature, doc) for off in _OFFSETS]
+                                   cache, base_signature, light[par.name])
+                     for off in _OFFSETS]
             names = set().union(*(m for m, _ in moved))
             for blk in d.blocks:
                 if blk.name not in names:
@@ -225,10 +228,10 @@ def _start_state(dd) -> np.ndarray:
 
 
 def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
-                  doc=None) -> tuple:
+                  light=None) -> tuple:
     """The diagram with parameter ``par`` set to ``value``: (block name -> its block, for
     the blocks that may differ from ``d``'s; the initial state).  The loader's light path
-    (``fwdstep.structure.spec.reevaluate_blocks``: the parameters and block entries that
+    (``light``, a ``fwdstep.structure.spec.Reevaluation``: the parameters and block entries that
     read the moved value, evaluated again by the loader's code; those blocks built anew,
     the rest of ``d`` shared) where it applies and the rebuilt blocks keep their
     structure; else the whole file loaded again (which says what the parameter changes
@@ -239,10 +242,10 @@ def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
     from fwdstep.structure.compiler import _block_signature, compile_spec, \
         structure_signature
     from fwdstep.structure.graph import _instantiate_one
-    from fwdstep.structure.spec import load_spec, reevaluate_blocks
+    from fwdstep.structure.spec import load_spec
     try:
-        entries = None if doc is None else reevaluate_blocks(d.spec, {par.name: value},
-                                                             cache, doc)
+        entries = light.entries({par.name: value}) if light is not None and light.applies \
+            else None
         rebuilt = {} if entries is None else {
             name: _instantiate_one(e) for name, e in entries.items()}
         by_name = {blk.name: blk for blk in d.blocks}

@@ -903,6 +903,42 @@ def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
     the process by everything the trace reads (kernels, static values, parameter values,
     wiring, shapes), so running a diagram again does not trace it again."""
     from fwdstep.compiled.scalarize import Untraceable
+    h, fns = stage_key(d, shapes, ops, fused, logged, unlogged, S)
+    key = h.digest()
+    if key not in _traced:
+        try:
+            st = _ScalarStage(d, shapes, ops, fused, d.constant_signals, logged, unlogged, S)
+        except Untraceable:
+            st = None
+        _traced[key] = (fns, st)
+        while len(_traced) > 64:
+            _traced.pop(next(iter(_traced)))
+    return _traced[key][1]
+
+
+def _update_value(h, v) -> None:
+    """Hash a static value exactly (an array by its bytes: ``repr`` rounds to 8 digits and
+    elides long arrays)."""
+    if isinstance(v, np.ndarray) and v.dtype != object:
+        h.update(repr(("a", v.dtype.str, v.shape)).encode() + np.ascontiguousarray(v).data)
+    elif isinstance(v, (tuple, list)):
+        h.update(repr((type(v).__name__, len(v))).encode())
+        for item in v:
+            _update_value(h, item)
+    else:
+        h.update(repr(v).encode())
+
+
+def stage_key(d, shapes, ops, fused, logged, unlogged, S, moving_p=None,
+              moving_M=None) -> tuple:
+    """(sha256 hasher, kernels): everything the trace of a diagram's scalar stage reads
+    (kernels, static values, parameter values, wiring, shapes, guards); the kernels are to
+    be held by the memo using the key (their ids are in it: not reused meanwhile).
+    ``moving_p[(block, name)]`` / ``moving_M[id(group op)]``: boolean masks of parameter
+    entries (of ``p.name``'s entry axes, flat) / fused-matrix entries (rows, columns)
+    whose values are left out (only which entries they are is in the key): entries a
+    stage keeps as run-time values of their own (``fwdstep.analysis.compiled_sensitivity``)."""
+    moving_p, moving_M = moving_p or {}, moving_M or {}
     h = hashlib.sha256(repr((d.n_states, S, logged, unlogged, sorted(fused), shapes,
                              sorted(d.constant_signals))).encode())
     for arr in d.constant_signals.values():
@@ -912,16 +948,27 @@ def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
         if kind == "group":
             h.update(repr(("g", op.inputs, op.outputs, op.derivative, op.M.shape,
                            owner.state)).encode())
-            h.update(np.ascontiguousarray(op.M, dtype=float).data)
+            M = np.array(op.M, dtype=float)
+            mask = moving_M.get(id(op))
+            if mask is not None:
+                M[:, mask] = np.nan
+                h.update(np.ascontiguousarray(mask).data)
+            h.update(M.data)
             continue
         blk, k = op.block, op.block.kernels
         fns.append(k)
         h.update(repr(("c", blk.name, type(blk).__qualname__, _in_python(blk),
                        None if k is None else (id(k.output), id(k.derivative), k.params,
-                                               k.static, k.packed, k.tuple_inputs),
+                                               k.packed, k.tuple_inputs),
                        op.inputs, op.outputs, op.state)).encode())
+        if k is not None:
+            _update_value(h, tuple(k.static))
         for name in (k.params if k is not None else ()):
-            arr = np.ascontiguousarray(getattr(blk.p, name), dtype=float)
+            arr = np.array(getattr(blk.p, name), dtype=float)
+            mask = moving_p.get((blk.name, name))
+            if mask is not None:
+                arr.reshape(arr.shape[0], -1)[:, mask] = np.nan
+                h.update(np.ascontiguousarray(mask).data)
             h.update(repr(arr.shape).encode() + arr.data)
     for step in crossing_steps(d):       # the guards: their functions and parameters
         blk = step.block
@@ -933,16 +980,7 @@ def _scalar_stage(d, shapes, ops, fused, logged, unlogged, S):
             if isinstance(arr, np.ndarray):
                 a = np.ascontiguousarray(arr, dtype=float)
                 h.update(repr((name, a.shape)).encode() + a.data)
-    key = h.digest()
-    if key not in _traced:
-        try:
-            st = _ScalarStage(d, shapes, ops, fused, d.constant_signals, logged, unlogged, S)
-        except Untraceable:
-            st = None
-        _traced[key] = (fns, st)
-        while len(_traced) > 64:
-            _traced.pop(next(iter(_traced)))
-    return _traced[key][1]
+    return h, fns
 
 
 class _ScalarModule:

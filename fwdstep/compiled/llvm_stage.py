@@ -140,11 +140,17 @@ _compiled: dict = {}
 
 
 def compile_stage(st, before=None) -> CompiledStage:
-    """The machine code of ``_ScalarStage`` st (memoised in the process by its IR);
+    """The machine code of ``_ScalarStage`` st (memoised in the process by its IR, whose
+    hash is kept on st: a stage never changes once built, and a copy rebound to other
+    values of W, ``compiled_sensitivity.VariationalStage.rebound``, has the same IR);
     ``before()`` is called first when it must be compiled (not memoised)."""
-    text = stage_ir(st)
-    key = hashlib.sha256(text.encode()).digest()
+    key, text = getattr(st, "_ir_key", None), None
+    if key is None:
+        text = stage_ir(st)
+        key = st._ir_key = hashlib.sha256(text.encode()).digest()
     if key not in _compiled:
+        if text is None:
+            text = stage_ir(st)
         if before is not None:
             before()
         engine = engine_of(text)

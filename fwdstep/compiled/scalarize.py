@@ -231,6 +231,10 @@ class Trace:
         self._interned: dict = {}
         self._values: dict = {}
         self.max_nodes = max_nodes
+        #: (node, value) of every number a kernel needed from parameters (``fixed``): the
+        #: code is written for these; a stage reused with other parameter values checks
+        #: them (``decisions_hold``)
+        self.decisions: list = []
 
     def _node(self, op, args, value, invariant) -> Sym:
         key = (op, tuple(a.n for a in args), value)
@@ -279,11 +283,25 @@ class Trace:
         vals = np.asarray(self.evaluate(s)).reshape(-1)
         if vals.size == 0 or not np.all(vals == vals[0]):
             raise Untraceable(f"{what} depends on a parameter that differs between variants")
+        self.decisions.append((s, vals[0].item()))
         return vals[0].item()
 
-    def evaluate(self, s: Sym):
-        """The values of a parameter-only node over the variants (NumPy)."""
-        memo = self._values
+    def decisions_hold(self, leaves: dict) -> bool:
+        """Whether every number the code was written for (``decisions``) is the same with
+        the parameter leaves ``leaves`` ({node number: values}) instead of their traced
+        values (the other leaves as traced)."""
+        memo = dict(leaves)
+        for s, value in self.decisions:
+            vals = np.asarray(self.evaluate(s, memo)).reshape(-1)
+            if vals.size == 0 or not np.all(vals == value):
+                return False
+        return True
+
+    def evaluate(self, s: Sym, memo: dict | None = None):
+        """The values of a parameter-only node over the variants (NumPy); ``memo``: values
+        already known by node number (default: this trace's own)."""
+        if memo is None:
+            memo = self._values
         if s.n in memo:
             return memo[s.n]
         if s.op == "const":
@@ -293,7 +311,7 @@ class Trace:
                 raise Untraceable(f"{s.value} has no value at trace time")
             out = s.values
         else:
-            a = [self.evaluate(x) for x in s.args]
+            a = [self.evaluate(x, memo) for x in s.args]
             with np.errstate(all="ignore"):
                 if s.op == "?":
                     out = np.where(a[0], a[1], a[2])

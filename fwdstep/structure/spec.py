@@ -180,93 +180,103 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
     return namespace
 
 
-def spec_document(spec: DiagramSpec, cache: dict | None = None) -> LineDict:
-    """The top-level document ``spec`` was loaded from (its text, or its file as read now;
-    ``cache``: see ``_read_document``)."""
-    text = spec.sources[0].text if spec.sources else None
-    if text is None:
-        return _read_document(spec.file, cache)
-    return _check_document(parse_yaml_text(text, file=spec.file), spec.file)
+class Reevaluation:
+    """The loader's light path for moving numbers (``fwdstep.analysis.sensitivity``): which
+    top-level parameters and block entries of ``spec`` read the ``--set`` names ``names``
+    (top-level parameters, ``BLOCK.PARAM`` paths; on top of ``spec.overrides``), found once;
+    ``entries(changes)`` evaluates them again for values of those names with the loader's
+    own code (``resolve_parameters`` for the parameters that depend on the moved ones, the
+    others kept as loaded; ``_Level._add_block`` for the block parameters that read them),
+    every other value as ``spec`` has it.  ``applies`` is False when the names reach
+    anything else (a subsystem, the simulation settings, the metrics, the log, a block
+    the spec does not have): the caller loads the whole file then.  The structure is not
+    checked here (the caller compares the rebuilt blocks' signatures with the loaded
+    ones)."""
 
+    def __init__(self, spec: DiagramSpec, names, cache: dict | None = None):
+        self.spec, self.applies = spec, False
+        path = spec.file
+        text = spec.sources[0].text if spec.sources else None
+        doc = (_read_document(path, cache, shared=True) if text is None else
+               _check_document(parse_yaml_text(text, file=path), path))
+        raw = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
+        moved, sim, log, paths = split_overrides({n: 0.0 for n in names}, raw)
+        base, _, _, base_paths = split_overrides(spec.overrides, raw)
+        if sim or log is not None:
+            return
+        values = dict(raw)
+        values.update(base)
+        changed = set(moved)
+        grown = True
+        while grown:                 # the parameters that read a moved one, transitively
+            grown = False
+            for name, value in values.items():
+                if name not in changed and any(names_in(t) & changed
+                                               for t in _strings_in(value)):
+                    changed.add(name)
+                    grown = True
 
-def reevaluate_blocks(spec: DiagramSpec, changes: dict, cache: dict | None = None,
-                      doc: LineDict | None = None):
-    """The loader's light path for a moved number (``fwdstep.analysis.sensitivity``): the
-    top-level block entries of ``spec`` whose parameters read what ``changes`` moves
-    (``--set`` names on top of ``spec.overrides``: top-level parameters, ``BLOCK.PARAM``
-    paths), evaluated again by the loader's own code (``resolve_parameters`` for the
-    parameters that depend on the moved ones, the others kept as loaded;
-    ``_Level._add_block`` for the block parameters that read them), every other value as
-    ``spec`` has it.  Returns ``{block name: BlockEntry}`` (the entry's other parameters,
-    shapes the wiring fixed included, as loaded), or None when the change reaches
-    anything else (a subsystem, the simulation settings, the metrics, the log): the caller
-    loads the whole file then.  The structure is not checked here (the caller compares
-    the rebuilt blocks' signatures with the loaded ones).  ``doc``: ``spec_document``'s,
-    read once by a caller that moves many values (it is not changed here)."""
-    path = spec.file
-    if doc is None:
-        doc = spec_document(spec, cache)
-    raw = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
-    moved, sim, log, paths = split_overrides(changes, raw)
-    base, _, _, base_paths = split_overrides(spec.overrides, raw)
-    if sim or log is not None:
-        return None
-    values = dict(raw)
-    values.update(base)
-    values.update(moved)
-    changed = set(moved)
-    grown = True
-    while grown:                     # the parameters that read a moved one, transitively
-        grown = False
-        for name, value in values.items():
-            if name not in changed and any(names_in(t) & changed for t in _strings_in(value)):
-                changed.add(name)
-                grown = True
+        def reads(value) -> bool:
+            if isinstance(value, dict):
+                return any(reads(v) for v in value.values())
+            return any(names_in(t) & changed for t in _strings_in(value))
 
-    def reads(value) -> bool:
-        if isinstance(value, dict):
-            return any(reads(v) for v in value.values())
-        return any(names_in(t) & changed for t in _strings_in(value))
+        for section in ("simulation", "metrics", "log", "plots"):
+            if reads(doc.get(section)):
+                return
+        sets = dict(base_paths)
+        sets.update(paths)
+        entries = {e.name: e for e in spec.blocks}
+        blocks = doc.get("blocks") if isinstance(doc.get("blocks"), dict) else {}
+        self.work = []               # (block name, its body reduced to the keys, line, sets)
+        for name, body in blocks.items():
+            if not isinstance(body, dict):
+                continue
+            mine = {k[1:]: v for k, v in sets.items() if k[0] == name}
+            if body.get("type") == "subsystem":
+                if reads(body.get("parameters")) or any(
+                        (name,) + r in paths or reads(v) for r, v in mine.items()):
+                    return
+                continue
+            keys = [k for k in body if k != "type" and (k,) not in mine and reads(body[k])]
+            keys += [r[0] for r, v in mine.items() if (name,) + r in paths or reads(v)]
+            if not keys:
+                continue
+            if name not in entries:
+                return
+            small = LineDict({k: v for k, v in body.items() if k == "type" or k in keys})
+            small.line, small.key_lines = body.line, dict(getattr(body, "key_lines", {}))
+            self.work.append((name, small, _line(blocks, name),
+                              {r: v for r, v in mine.items() if r[0] in keys}))
+        self.raw, self.values, self.changed, self.base_paths = raw, values, changed, base_paths
+        self.level = _Level(doc, path, {}, "", stack=(os.path.realpath(path),), cache=cache)
+        self.line = _line(doc, "parameters")
+        self.entries_of = entries
+        self.applies = True
 
-    for section in ("simulation", "metrics", "log", "plots"):
-        if reads(doc.get(section)):
-            return None
-    ns = resolve_parameters(raw, {k: values[k] for k in changed}, path,
-                            preset={k: v for k, v in spec.parameters.items()
-                                    if k not in changed}, line=_line(doc, "parameters"))
-    sets = dict(base_paths)
-    sets.update(paths)
-    level = _Level(doc, path, ns, "", stack=(os.path.realpath(path),), cache=cache,
-                   sets=sets)
-    entries = {e.name: e for e in spec.blocks}
-    blocks = doc.get("blocks") if isinstance(doc.get("blocks"), dict) else {}
-    out = {}
-    for name, body in blocks.items():
-        mine = {k[1:]: v for k, v in sets.items() if k[0] == name}
-        if not isinstance(body, dict):
-            continue
-        if body.get("type") == "subsystem":
-            if reads(body.get("parameters")) or any(
-                    tuple((name,) + r) in paths or reads(v) for r, v in mine.items()):
-                return None
-            continue
-        keys = [k for k in body if k != "type" and (k,) not in mine and reads(body[k])]
-        keys += [r[0] for r, v in mine.items() if (name,) + r in paths or reads(v)]
-        if not keys:
-            continue
-        if name not in entries:
-            return None
-        small = LineDict({k: v for k, v in body.items() if k == "type" or k in keys})
-        small.line, small.key_lines = body.line, dict(getattr(body, "key_lines", {}))
-        level._add_block(name, small, _line(blocks, name),
-                         {r: v for r, v in mine.items() if r[0] in keys})
-        got = level.blocks.pop()
-        old = entries[name]
-        params = dict(old.params)
-        params.update(got.params)
-        out[name] = BlockEntry(old.name, old.type_name, old.cls, params, old.file, old.line,
-                               old.key_lines)
-    return out
+    def entries(self, changes: dict) -> dict:
+        """{block name: BlockEntry} of the blocks that read ``changes`` ({name: value},
+        the names given), evaluated again; the entry's other parameters (shapes the wiring
+        fixed included) as loaded."""
+        moved, _, _, paths = split_overrides(changes, self.raw)
+        values = dict(self.values)
+        values.update(moved)
+        ns = resolve_parameters(self.raw, {k: values[k] for k in self.changed}, self.spec.file,
+                                preset={k: v for k, v in self.spec.parameters.items()
+                                        if k not in self.changed}, line=self.line)
+        level = self.level
+        level.ns, level.blocks, level.budget = ns, [], Budget()
+        out = {}
+        for name, small, line, sets in self.work:
+            sets = {r: paths.get((name,) + r, v) for r, v in sets.items()}
+            level._add_block(name, small, line, sets)
+            got = level.blocks.pop()
+            old = self.entries_of[name]
+            params = dict(old.params)
+            params.update(got.params)
+            out[name] = BlockEntry(old.name, old.type_name, old.cls, params, old.file,
+                                   old.line, old.key_lines)
+        return out
 
 
 def _blame_override(exc: DiagramError, name: str, uses: dict, overrides: dict, raw,
@@ -770,10 +780,11 @@ def check_figure_text(text: str | None, what: str, file: str, line) -> None:
                           "between two $; write \\$ for a dollar sign)", file=file, line=line)
 
 
-def _read_document(path: str, cache: dict | None = None) -> LineDict:
+def _read_document(path: str, cache: dict | None = None, shared: bool = False) -> LineDict:
     """Parse and check a diagram file.  With ``cache`` (a dict kept by the caller, e.g. a
     sweep building many variants), each file is parsed once per (path, mtime, size) and every
-    caller gets its own deep copy of the document.  The key includes the SHA-256 of the
+    caller gets its own deep copy of the document (``shared``: the cache's own, for a
+    caller that never changes it).  The key includes the SHA-256 of the
     file's bytes: a file edited in place within the clock's resolution, to the same size, is
     parsed again (its bytes are read on every call; parsing is what the cache saves)."""
     if cache is not None:
@@ -788,7 +799,7 @@ def _read_document(path: str, cache: dict | None = None) -> LineDict:
         if key is not None:
             if key not in cache:
                 cache[key] = _read_document(path)
-            return copy.deepcopy(cache[key])
+            return cache[key] if shared else copy.deepcopy(cache[key])
     check_regular_file(path)        # never open a FIFO, a device or stdin
     return _check_document(read_yaml_file(path), path)
 
