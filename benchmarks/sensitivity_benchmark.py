@@ -2,14 +2,19 @@
 <= (1 + 0.5 p) x one compiled run, for the two-link diagrams).
 
 For theorem1.yaml and slotine_li.yaml (10 s unless --t-final), CPU-time medians of
---repeats interleaved repeats in this one process, everything compiled beforehand:
+--repeats interleaved repeats in this one process, everything compiled beforehand, each
+side measured alike:
 
-* integration: ``fwdstep.run.simulate.run`` of a prepared ``CompiledBackend`` (one run)
-  against the same of a prepared ``SensitivityBackend`` integrating (x, S) with p = 1, 2, 4
-  parameters -- the cost the target is about;
-* whole call: ``simulate(d, backend="compiled")`` against ``simulate(d, backend="compiled",
-  sensitivities=[...])``, which also finds how the parameters reach the blocks (the loader's
-  Richardson differences: 4 loads of the YAML file per column) and traces the stage;
+* (a) integration: ``fwdstep.run.simulate.run`` of a prepared ``CompiledBackend`` (one
+  run) against the same of a prepared ``SensitivityBackend`` integrating (x, S) with
+  p = 1, 2, 4 parameters;
+* (b) whole call, same values: ``simulate(d, backend="compiled")`` against
+  ``simulate(d, backend="compiled", sensitivities=[...])`` on the same diagram every time;
+* (c) whole call, a new value at every call (what a tuning's evaluations do): both sides
+  get a diagram loaded beforehand with another value of the first parameter each call
+  (neither the plain stage nor the sensitivities' set-up has seen it); the sensitivities'
+  set-up finds how the parameters reach the blocks (the loader's light path, 4 moved
+  evaluations per column) and rebinds the memoised variational stage;
 * the NumPy path's sensitivities (``backend="numpy"``), once each for p = 1 and 4 (slow).
 
 Run: ``python benchmarks/sensitivity_benchmark.py [--t-final 10] [--repeats 15]``.
@@ -74,38 +79,47 @@ def measure(name: str, params: list, t_final: float, repeats: int, numpy_runs: b
         b = cs.SensitivityBackend(d, plan_events(d, cfg.step, cfg.n_steps), st, S0)
         return _cpu(lambda: run(d, b))
 
-    def plain_call():
-        return _cpu(lambda: fwdstep.simulate(d, backend="compiled"))
+    def call(dd, p):
+        if p == 0:
+            return _cpu(lambda: fwdstep.simulate(dd, backend="compiled"))
 
-    def sens_call(p):
         def go():
-            r = fwdstep.simulate(d, backend="compiled", sensitivities=params[:p])
+            r = fwdstep.simulate(dd, backend="compiled", sensitivities=params[:p])
             assert r.backend == "compiled" and not r.notes, r.notes
         return _cpu(go)
 
-    plain_run(), plain_call()                      # compile everything first
+    # (c): another value of the first parameter at every call, loaded beforehand
+    v0 = resolve_parameter(d, params[0]).value
+    fresh = iter([fwdstep.load_diagram(path, {"t_final": t_final, params[0]: (
+        v0 * (1 + 1e-3 * (i + 1))).tolist()}) for i in range(5 * (repeats + 1))])
+
+    plain_run(), call(d, 0), call(next(fresh), 0)        # compile everything first
     for p in counts:
-        sens_run(p), sens_call(p)
-    runs = {"run": [], "call": []}
+        sens_run(p), call(d, p), call(next(fresh), p)
+    runs = {key: [] for key in ("run", "same0", "new0")}
     for p in counts:
-        runs[f"run{p}"], runs[f"call{p}"] = [], []
+        runs[f"run{p}"], runs[f"same{p}"], runs[f"new{p}"] = [], [], []
     for _ in range(repeats):                       # interleaved
         runs["run"].append(plain_run())
-        runs["call"].append(plain_call())
+        runs["same0"].append(call(d, 0))
+        runs["new0"].append(call(next(fresh), 0))
         for p in counts:
             runs[f"run{p}"].append(sens_run(p))
-            runs[f"call{p}"].append(sens_call(p))
+            runs[f"same{p}"].append(call(d, p))
+            runs[f"new{p}"].append(call(next(fresh), p))
     med = {k: statistics.median(v) for k, v in runs.items()}
-    rows = [(name, "compiled run", med["run"], 1.0, med["call"], 1.0, "")]
+    rows = [(name, "compiled run (no sensitivities)", med["run"], 1.0, med["same0"], 1.0,
+             med["new0"], 1.0, "")]
     for p in counts:
-        rows.append((name, f"compiled, p = {p} ({', '.join(params[:p])})", med[f"run{p}"],
-                     med[f"run{p}"] / med["run"], med[f"call{p}"],
-                     med[f"call{p}"] / med["call"], f"<= {1 + 0.5 * p:g}"))
+        rows.append((name, f"p = {p} ({', '.join(params[:p])})", med[f"run{p}"],
+                     med[f"run{p}"] / med["run"], med[f"same{p}"],
+                     med[f"same{p}"] / med["same0"], med[f"new{p}"],
+                     med[f"new{p}"] / med["new0"], f"<= {1 + 0.5 * p:g}"))
     if numpy_runs:
         for p in (1, 4):
             t = _cpu(lambda: fwdstep.simulate(d, backend="numpy", sensitivities=params[:p]))
             rows.append((name, f"numpy path, p = {p}", float("nan"), float("nan"), t,
-                         t / med["call"], ""))
+                         t / med["same0"], float("nan"), float("nan"), ""))
     return rows
 
 
@@ -121,11 +135,11 @@ def main(argv=None) -> int:
         rows += measure(name, params, a.t_final, a.repeats, not a.no_numpy)
     print(f"t_final {a.t_final:g} s, CPU-time medians of {a.repeats} interleaved repeats; "
           f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
-    print(f"{'diagram':16} {'what':44} {'integration':>11} {'x run':>6} {'call':>9} "
-          f"{'x call':>7}  target")
-    for name, what, t_run, r_run, t_call, r_call, target in rows:
-        print(f"{name:16} {what:44} {t_run * 1e3:9.2f}ms {r_run:6.2f} {t_call * 1e3:7.1f}ms "
-              f"{r_call:7.1f}  {target}")
+    print(f"{'diagram':16} {'what':36} {'(a) integration':>17} {'(b) same values':>17} "
+          f"{'(c) new value':>17}  target")
+    for name, what, ta, ra, tb, rb, tc, rc, target in rows:
+        print(f"{name:16} {what:36} {ta * 1e3:7.2f}ms {ra:5.2f}x {tb * 1e3:7.2f}ms {rb:5.2f}x "
+              f"{tc * 1e3:7.2f}ms {rc:5.2f}x  {target}")
     return 0
 
 

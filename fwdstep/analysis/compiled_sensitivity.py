@@ -41,7 +41,7 @@ import time as _time
 import numpy as np
 
 from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS, directional_tangents, \
-    moved_block, richardson
+    moved_block, moved_variants, richardson
 from fwdstep.compiled import backend_numba
 from fwdstep.compiled import scalarize as sz
 from fwdstep.compiled.driver import CompiledBackend, numpy_instead
@@ -198,6 +198,7 @@ def group_derivatives(d, ops, shapes, dp: dict, P: int, fused=None) -> dict:
     if not groups or not by_block:
         return {}
     out = {id(op): np.zeros((P,) + np.shape(op.M)[1:]) for _, op in groups}
+    moves, steps = [], []     # every (column, offset) is a variant of one batched fusion
     for c in range(P):
         scale = max(float(np.max(np.abs(g[:, c]))) for m in by_block.values()
                     for g in m.values())
@@ -206,19 +207,34 @@ def group_derivatives(d, ops, shapes, dp: dict, P: int, fused=None) -> dict:
         size = max([float(np.max(np.abs(getattr(st.block.p, n)))) for st in d.schedule
                     if st.block.name in by_block for n in by_block[st.block.name]] + [1.0])
         h = DIFFERENCE_STEP * size / scale
-        values = []
-        for off in OFFSETS:
-            schedule = [dataclasses.replace(st, block=moved_block(
-                st.block, by_block[st.block.name], c, off * h))
-                if st.block.name in by_block else st for st in d.schedule]
-            moved, _ = backend_numba._ops_for(schedule, shapes, d.constant_signals)
-            if [kind for kind, _, _ in moved] != [kind for kind, _, _ in ops] or any(
-                    np.shape(moved[k][1].M) != np.shape(op.M) for k, op in groups):
-                raise sz.Untraceable("the fusion of the linear blocks changes with the "
-                                     "parameter")
-            values.append([np.asarray(moved[k][1].M, dtype=float) for k, _ in groups])
-        for g, (_, op) in enumerate(groups):
-            out[id(op)][c] = richardson([v[g] for v in values], h)[0]
+        moves += [(c, off * h) for off in OFFSETS]
+        steps.append((c, h))
+    if not moves:
+        return {}
+
+    def fused(variants):
+        """The groups' M with the moved blocks' variants ``variants`` (a batch), or None
+        when the fusion is not the diagram's (a batch too large to fuse, say)."""
+        schedule = [dataclasses.replace(st, block=moved_variants(
+            st.block, by_block[st.block.name], variants))
+            if st.block.name in by_block else st for st in d.schedule]
+        moved, _ = backend_numba._ops_for(schedule, shapes, d.constant_signals)
+        if [kind for kind, _, _ in moved] != [kind for kind, _, _ in ops] or any(
+                np.shape(moved[k][1].M)[1:] != np.shape(op.M)[1:] for k, op in groups):
+            return None
+        return [np.broadcast_to(np.asarray(moved[k][1].M, dtype=float),
+                                (len(variants),) + np.shape(op.M)[1:]) for k, op in groups]
+
+    Ms = fused(moves)
+    if Ms is None:                    # one move at a time
+        each = [fused([m]) for m in moves]
+        if any(m is None for m in each):
+            raise sz.Untraceable("the fusion of the linear blocks changes with the parameter")
+        Ms = [np.concatenate([m[g] for m in each]) for g in range(len(groups))]
+    n = len(OFFSETS)
+    for (_, op), M in zip(groups, Ms):
+        for q, (c, h) in enumerate(steps):
+            out[id(op)][c] = richardson(M[q * n:(q + 1) * n], h)
     return {key: dm for key, dm in out.items() if dm.any()}
 
 

@@ -75,13 +75,23 @@ def richardson(f, h):
 def moved_block(blk, dp: dict, c: int, amount: float):
     """A copy of ``blk`` with each p array ``name`` moved by amount * dp[name][:, c] (made
     ready for one variant, ``finalize(1)``); ``blk`` is left as it is."""
+    return moved_variants(blk, dp, [(c, amount)])
+
+
+def moved_variants(blk, dp: dict, moves: list):
+    """A copy of ``blk`` (one variant, ``blk.p``'s arrays of leading length 1) whose
+    variants are ``blk`` moved by each (c, amount) of ``moves``: each p array ``name``
+    stacked as [p + amount * dp[name][:, c] for each move] (made ready for len(moves)
+    variants, ``finalize``, as ``fwdstep.structure.compiler.stack_blocks`` does for a
+    batch); ``blk`` is left as it is."""
     b = copy.copy(blk)
     b.p = SimpleNamespace(**vars(blk.p))
     for n, g in dp.items():
         arr = np.asarray(getattr(blk.p, n), dtype=float)
-        setattr(b.p, n, arr + amount * g[:, c].reshape(arr.shape))
+        setattr(b.p, n, np.concatenate([arr + amount * g[:, c].reshape(arr.shape)
+                                        for c, amount in moves], axis=0))
     b.__dict__.pop("_kargs", None)
-    b.finalize(1)
+    b.finalize(len(moves))
     return b
 
 
@@ -630,4 +640,4 @@ def block_jacobians(blocks, params: dict | None = None) -> dict:
 
 __all__ = ["BlockJacobian", "Jacobian", "forward_tangents", "directional_tangents",
            "GraphProgram", "block_jacobians", "DIFFERENCE_STEP", "OFFSETS", "richardson",
-           "moved_block"]
+           "moved_block", "moved_variants"]
