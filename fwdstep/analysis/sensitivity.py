@@ -188,6 +188,7 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
         return base["sig"]
 
     light: dict = {}
+    columns = []                      # (column, h, [(moved blocks, x0 or None)] per offset)
     for par in params:
         if par.name not in light:
             try:
@@ -195,24 +196,31 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
             except (DiagramError, OSError):
                 light[par.name] = None        # (the whole loads say what is wrong)
         for k, element in enumerate(par.elements):
-            col = par.columns.start + k
             h = DIFFERENCE_STEP * max(1.0, abs(float(par.value.reshape(-1)[element])))
-            moved = [_moved_blocks(d, par, _moved_value(par, element, off * h), off * h,
-                                   cache, base_signature, light[par.name])
-                     for off in _OFFSETS]
-            names = set().union(*(m for m, _ in moved))
-            for blk in d.blocks:
-                if blk.name not in names:
+            columns.append((par.columns.start + k, h, [
+                _moved_blocks(d, par, _moved_value(par, element, off * h), off * h, cache,
+                              base_signature, light[par.name]) for off in _OFFSETS]))
+    # the initial states of the light path's moved diagrams: one batched evaluation
+    pending = [(q, i) for q, (_, _, moved) in enumerate(columns)
+               for i, (_, x0) in enumerate(moved) if x0 is None]
+    if pending:
+        X0 = _start_states(d, [columns[q][2][i][0] for q, i in pending])
+        for (q, i), x0 in zip(pending, X0):
+            columns[q][2][i] = (columns[q][2][i][0], x0)
+    for col, h, moved in columns:
+        names = set().union(*(m for m, _ in moved))
+        for blk in d.blocks:
+            if blk.name not in names:
+                continue
+            for name, arr in vars(blk.p).items():
+                vals = [np.asarray(getattr(m.get(blk.name, blk).p, name), dtype=float)
+                        for m, _ in moved]
+                if all(np.array_equal(v, arr) for v in vals):
                     continue
-                for name, arr in vars(blk.p).items():
-                    vals = [np.asarray(getattr(m.get(blk.name, blk).p, name), dtype=float)
-                            for m, _ in moved]
-                    if all(np.array_equal(v, arr) for v in vals):
-                        continue
-                    g = _richardson(vals, h).reshape(-1)
-                    dp.setdefault((blk.name, name), np.zeros((g.size, P)))[:, col] = g
-            with np.errstate(all="ignore"):
-                dx0[:, col] = _richardson([x0 for _, x0 in moved], h)
+                g = _richardson(vals, h).reshape(-1)
+                dp.setdefault((blk.name, name), np.zeros((g.size, P)))[:, col] = g
+        with np.errstate(all="ignore"):
+            dx0[:, col] = _richardson([x0 for _, x0 in moved], h)
     if not dp and not dx0.any():
         names = ", ".join(p.text for p in params)
         raise ConfigError(f"sensitivity parameters {names} reach no block parameter and no "
@@ -221,24 +229,43 @@ def loader_derivative(d, params: list, P: int) -> LoadedDerivative:
 
 
 def _start_state(dd) -> np.ndarray:
+    """x(0) of a loaded diagram's variants, (batch, N)."""
     from fwdstep.run.evaluate import initial_state
     from fwdstep.run.events import plan_events
     ev = plan_events(dd, dd.spec.simulation.step, dd.spec.simulation.n_steps)
-    return initial_state(dd, event=ev.start if ev is not None else None)[0]
+    return initial_state(dd, event=ev.start if ev is not None else None)
+
+
+def _start_states(d, variants: list) -> np.ndarray:
+    """x(0) of ``d`` with each of ``variants`` (block name -> the block replacing ``d``'s),
+    (len(variants), N): one batch (``fwdstep.structure.compiler.stack_blocks``, as a sweep
+    stacks its variants), its initial state evaluated once."""
+    import copy
+    import dataclasses
+
+    from fwdstep.structure.compiler import stack_blocks
+    B = len(variants)
+    stacked = stack_blocks([[v.get(blk.name, blk) for blk in d.blocks] for v in variants])
+    steps = [dataclasses.replace(st, block=blk) for st, blk in zip(d.schedule, stacked)]
+    dd = copy.copy(d)
+    dd.batch, dd.schedule = B, steps
+    dd.stateful = [st for st in steps if st.state is not None]
+    dd.x0 = np.zeros((B, d.n_states))
+    for st in dd.stateful:
+        dd.x0[:, st.state] = np.broadcast_to(st.block.x0, (B, st.block.n_states))
+    return _start_state(dd)
 
 
 def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
                   light=None) -> tuple:
     """The diagram with parameter ``par`` set to ``value``: (block name -> its block, for
-    the blocks that may differ from ``d``'s; the initial state).  The loader's light path
+    the blocks that may differ from ``d``'s; the initial state, None from the light path:
+    the caller evaluates those together, ``_start_states``).  The loader's light path
     (``light``, a ``fwdstep.structure.spec.Reevaluation``: the parameters and block entries that
     read the moved value, evaluated again by the loader's code; those blocks built anew,
     the rest of ``d`` shared) where it applies and the rebuilt blocks keep their
     structure; else the whole file loaded again (which says what the parameter changes
     beyond the run-time arrays)."""
-    import copy
-    import dataclasses
-
     from fwdstep.structure.compiler import _block_signature, compile_spec, \
         structure_signature
     from fwdstep.structure.graph import _instantiate_one
@@ -252,16 +279,7 @@ def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
         if entries is not None and all(
                 name in by_name and _block_signature(b) == _block_signature(by_name[name])
                 for name, b in rebuilt.items()):
-            steps = {id(st): dataclasses.replace(st, block=rebuilt[st.block.name])
-                     for st in d.schedule if st.block.name in rebuilt}
-            dd = copy.copy(d)
-            dd.schedule = [steps.get(id(st), st) for st in d.schedule]
-            dd.stateful = [steps.get(id(st), st) for st in d.stateful]
-            dd.x0 = d.x0.copy()
-            for st in steps.values():
-                if st.state is not None:
-                    dd.x0[:, st.state] = np.broadcast_to(st.block.x0, (1, st.block.n_states))
-            return rebuilt, _start_state(dd)
+            return rebuilt, None      # (its initial state: _start_states, batched)
         overrides = dict(d.spec.overrides)
         overrides[par.name] = value
         dd = compile_spec(load_spec(d.spec.file, overrides, cache))
@@ -269,7 +287,7 @@ def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
         raise ConfigError(f"sensitivity parameter '{par.text}' cannot be moved by "
                           f"{delta:.3g}: {exc}", file=d.file) from None
     _same_structure(d, dd, par, base_signature(), structure_signature)
-    return {blk.name: blk for blk in dd.blocks}, _start_state(dd)
+    return {blk.name: blk for blk in dd.blocks}, _start_state(dd)[0]
 
 
 def _same_structure(d, dd, par, base_signature, signature) -> None:
