@@ -276,8 +276,8 @@ def variational_stage(d, dp: dict, P: int) -> VariationalStage:
     reuses the graph and the machine code with W's moving columns rebound
     (``VariationalStage.rebound``), unless a number the code was written for moves with
     them (then it is traced again)."""
-    shapes = [tuple(s) for s in d.signal_shapes]
-    ops, fused = backend_numba._ops_for(d.schedule, shapes, d.constant_signals)
+    # (kept for build_program's next call, which runs this stage)
+    shapes, ops, fused = backend_numba._diagram_ops(d, keep=True)
     _check_calls(ops, dp)
     dM = group_derivatives(d, ops, shapes, dp, P, fused)
     from fwdstep.run.finite import unlogged_signals

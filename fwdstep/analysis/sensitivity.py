@@ -237,15 +237,16 @@ def _start_state(dd) -> np.ndarray:
 
 
 def _start_states(d, variants: list) -> np.ndarray:
-    """x(0) of ``d`` with each of ``variants`` (block name -> the block replacing ``d``'s),
-    (len(variants), N): one batch (``fwdstep.structure.compiler.stack_blocks``, as a sweep
+    """x(0) of ``d`` with each of ``variants`` (block name -> the block replacing ``d``'s,
+    of the same structure), (len(variants), N): one batch (``fwdstep.structure.compiler.stack_blocks``, as a sweep
     stacks its variants), its initial state evaluated once."""
     import copy
     import dataclasses
 
     from fwdstep.structure.compiler import stack_blocks
     B = len(variants)
-    stacked = stack_blocks([[v.get(blk.name, blk) for blk in d.blocks] for v in variants])
+    stacked = stack_blocks([[v.get(blk.name, blk) for blk in d.blocks] for v in variants],
+                           compared=True)     # (each rebuilt block's, by _moved_blocks)
     steps = [dataclasses.replace(st, block=blk) for st, blk in zip(d.schedule, stacked)]
     dd = copy.copy(d)
     dd.batch, dd.schedule = B, steps

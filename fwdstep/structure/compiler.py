@@ -145,16 +145,17 @@ def setup_state(block) -> tuple:
     return tuple(sorted((k, _value_key(v)) for k, v in vars(block).items() if k not in skip))
 
 
-def stack_blocks(variants: list) -> list:
+def stack_blocks(variants: list, compared: bool = False) -> list:
     """Stack the numeric parameters of structurally identical block lists along the batch axis.
 
     Returns copies of the first variant's blocks with ``p`` arrays of leading length B (or 1
     where all variants agree) and ``x0`` of shape (B, n); the variants' own blocks (which
-    may be shared between variants and batches) are left as they were."""
+    may be shared between variants and batches) are left as they were.  ``compared``: the
+    caller has compared the variants' ``structure_signature`` already."""
     first = variants[0]
     B = len(variants)
-    signature = structure_signature(first)
-    for blocks in variants[1:]:
+    signature = None if compared else structure_signature(first)
+    for blocks in variants[1:] if not compared else ():
         if blocks is not first and structure_signature(blocks) != signature:
             raise ConfigError("variants of a batch differ in structure (a parameter changes "
                               "a shape or a state size); run them in separate batches")
