@@ -65,10 +65,11 @@ class VariationalStage(backend_numba._ScalarStage):
         self._moving: dict = {}           # (id(group op), i, j) -> its leaf
         self.sens_columns: list = []
         #: (column of W, its leaf's node number, where its value comes from): the entries
-        #: that move and their seeds, ("p", block, name, entry) / ("dp", block, name,
+        #: that move and their seeds (a seed column shared by equal seeds: one row each), ("p", block, name, entry) / ("dp", block, name,
         #: entry, direction) / ("M", op, i, j) / ("dM", op, i, j, direction), op the
         #: group's position in the ops (``rebound``)
         self.bindings: list = []
+        self._seeds_by_value: dict = {}
         self._position = {id(op): k for k, (_, op, _) in enumerate(ops)}
         super().__init__(d, shapes, ops, fused, d.constant_signals, logged, unlogged,
                          n_stages)
@@ -86,13 +87,25 @@ class VariationalStage(backend_numba._ScalarStage):
         self.bindings.append((j, node.n, source))
         return node
 
+    def _seed(self, value: float, source):
+        """A seed (an entry of dp or dM): a run-time value too (not a constant written
+        into the code), so another value of the parameter runs the same machine code;
+        seeds equal to each other are one column (as ``_leaf`` shares equal entries: their
+        products are then one node), ``rebound`` checks that they still are."""
+        values = np.array([value], dtype=np.float64)
+        node = self._seeds_by_value.get(values.tobytes())
+        if node is None:
+            node = self._seeds_by_value[values.tobytes()] = self._column(values, source)
+        else:
+            j = next(j for j, n, _ in self.bindings if n == node.n)
+            self.bindings.append((j, node.n, source))
+        return node
+
     def _moving_leaf(self, values, tangent, source):
         """A parameter entry that moves: a column of W of its own, seeded."""
         node = self._column(values, source)
-        # the seeds are run-time values too (not constants written into the code), so
-        # another value of the parameter runs the same machine code
-        self.seeds[node.n] = {c: self._column(np.array([tangent[c]]), ("d" + source[0],)
-                                              + source[1:] + (c,))
+        self.seeds[node.n] = {c: self._seed(tangent[c], ("d" + source[0],) + source[1:]
+                                            + (c,))
                               for c in range(self.P) if tangent[c] != 0.0}
         return node
 
@@ -133,6 +146,12 @@ class VariationalStage(backend_numba._ScalarStage):
         W = self.W.copy()
         leaves = {}
         for j, n, src in self.bindings:
+            if n in leaves and src[0] in ("dp", "dM"):    # a seed shared by equal seeds
+                v = np.array([dp[(src[1], src[2])][src[3], src[4]] if src[0] == "dp" else
+                              dM[id(ops[src[1]][1])][src[4], src[2], src[3]]])
+                if not np.array_equal(v, leaves[n]):
+                    return None
+                continue
             kind = src[0]
             if kind == "p":
                 arr = np.asarray(getattr(blocks[src[1]].p, src[2]), dtype=np.float64)

@@ -196,6 +196,7 @@ def evaluate(text: str, namespace: Mapping[str, Any], what: str = "expression") 
     try:
         if not screened:
             evaluator.screen(tree.body)    # raises the message
+        evaluator.screened = True          # (visit need not look for forbidden nodes)
         body = tree.body
         if isinstance(body, ast.Name) and body.id in namespace:
             return namespace[body.id]     # a bare name passes any value on (a boolean flag)
@@ -223,6 +224,7 @@ class _Evaluator:
         self.src = src
         self.ns = namespace
         self.what = what
+        self.screened = False           # the whole tree passed ``screen``
 
     def fail(self, msg: str) -> ExpressionError:
         src = self.src if len(self.src) <= 100 else self.src[:97] + "..."
@@ -242,9 +244,10 @@ class _Evaluator:
                     raise self.fail(f"uses a forbidden construct ({label})")
 
     def visit(self, node):
-        for kind, label in _FORBIDDEN.items():
-            if isinstance(node, kind):
-                raise self.fail(f"uses a forbidden construct ({label})")
+        if not self.screened:
+            for kind, label in _FORBIDDEN.items():
+                if isinstance(node, kind):
+                    raise self.fail(f"uses a forbidden construct ({label})")
         method = getattr(self, "visit_" + type(node).__name__, None)
         if method is None:
             raise self.fail(f"uses a forbidden construct ({type(node).__name__})")
@@ -385,6 +388,10 @@ class _Evaluator:
             raise ValueError(f"the result would have {size} numbers (limit {MAX_ARRAY_SIZE})")
 
     def _check(self, value):
+        if type(value) is float:        # (most values: no array made)
+            if not math.isfinite(value):
+                raise self.fail("is not finite")
+            return value
         arr = np.asarray(value)
         if arr.size > MAX_ARRAY_SIZE:
             raise self.fail(f"produces {arr.size} numbers (limit {MAX_ARRAY_SIZE})")
