@@ -180,6 +180,10 @@ def resolve_parameters(raw: LineDict, overrides: dict, file: str,
     return namespace
 
 
+#: ``Reevaluation`` plans by (document, names, other overrides, blocks)
+_PLANS: dict = {}
+
+
 class Reevaluation:
     """The loader's light path for moving numbers (``fwdstep.analysis.sensitivity``): which
     top-level parameters and block entries of ``spec`` read the ``--set`` names ``names``
@@ -195,10 +199,32 @@ class Reevaluation:
 
     def __init__(self, spec: DiagramSpec, names, cache: dict | None = None):
         self.spec, self.applies = spec, False
+        self.entries_of = {e.name: e for e in spec.blocks}
         path = spec.file
         text = spec.sources[0].text if spec.sources else None
         doc = (_read_document(path, cache, shared=True) if text is None else
                _check_document(parse_yaml_text(text, file=path), path))
+        # the plan depends on the document (``cache``'s own object while the file does not
+        # change), the other overrides and the names only: a tuning finds it once
+        key = None
+        others = sorted(((k, v) for k, v in spec.overrides.items() if k not in names),
+                        key=lambda kv: str(kv[0]))
+        if text is None and cache is not None and not any(
+                isinstance(v, np.ndarray) for _, v in others):
+            key = (id(doc), tuple(names), repr(others), tuple(self.entries_of))
+            got = _PLANS.get(key)
+            if got is not None and got[0] is doc:
+                vars(self).update(got[1])
+                return
+        self._plan(spec, doc, names, cache)
+        if key is not None:
+            _PLANS[key] = (doc, {k: v for k, v in vars(self).items()
+                                 if k not in ("spec", "entries_of")})
+            while len(_PLANS) > 32:
+                _PLANS.pop(next(iter(_PLANS)))
+
+    def _plan(self, spec, doc, names, cache) -> None:
+        path = spec.file
         raw = doc.get("parameters") if isinstance(doc.get("parameters"), dict) else {}
         moved, sim, log, paths = split_overrides({n: 0.0 for n in names}, raw)
         base, _, _, base_paths = split_overrides(spec.overrides, raw)
@@ -226,7 +252,7 @@ class Reevaluation:
                 return
         sets = dict(base_paths)
         sets.update(paths)
-        entries = {e.name: e for e in spec.blocks}
+        entries = self.entries_of
         blocks = doc.get("blocks") if isinstance(doc.get("blocks"), dict) else {}
         self.work = []               # (block name, its body reduced to the keys, line, sets)
         for name, body in blocks.items():
@@ -248,10 +274,9 @@ class Reevaluation:
             small.line, small.key_lines = body.line, dict(getattr(body, "key_lines", {}))
             self.work.append((name, small, _line(blocks, name),
                               {r: v for r, v in mine.items() if r[0] in keys}))
-        self.raw, self.values, self.changed, self.base_paths = raw, values, changed, base_paths
+        self.raw, self.base, self.changed = raw, base, changed
         self.level = _Level(doc, path, {}, "", stack=(os.path.realpath(path),), cache=cache)
         self.line = _line(doc, "parameters")
-        self.entries_of = entries
         self.applies = True
 
     def entries(self, changes: dict) -> dict:
@@ -259,9 +284,9 @@ class Reevaluation:
         the names given), evaluated again; the entry's other parameters (shapes the wiring
         fixed included) as loaded."""
         moved, _, _, paths = split_overrides(changes, self.raw)
-        values = dict(self.values)
-        values.update(moved)
-        ns = resolve_parameters(self.raw, {k: values[k] for k in self.changed}, self.spec.file,
+        given = {k: v for k, v in self.base.items() if k in self.changed}
+        given.update(moved)           # (the --set values as given: a message blames them)
+        ns = resolve_parameters(self.raw, given, self.spec.file,
                                 preset={k: v for k, v in self.spec.parameters.items()
                                         if k not in self.changed}, line=self.line)
         level = self.level
