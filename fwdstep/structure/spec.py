@@ -206,9 +206,11 @@ class Reevaluation:
                _check_document(parse_yaml_text(text, file=path), path))
         # the plan depends on the document (``cache``'s own object while the file does not
         # change), the other overrides and the names only: a tuning finds it once
+        # (a number's value never changes which parameters read which: only its name)
         key = None
-        others = sorted(((k, v) for k, v in spec.overrides.items() if k not in names),
-                        key=lambda kv: str(kv[0]))
+        others = sorted(((k, v if any(True for _ in _strings_in(v)) or not isinstance(
+            v, (int, float, list)) else "<numbers>") for k, v in spec.overrides.items()
+            if k not in names), key=lambda kv: str(kv[0]))
         if text is None and cache is not None and not any(
                 isinstance(v, np.ndarray) for _, v in others):
             key = (id(doc), tuple(names), repr(others), tuple(self.entries_of))
@@ -274,7 +276,7 @@ class Reevaluation:
             small.line, small.key_lines = body.line, dict(getattr(body, "key_lines", {}))
             self.work.append((name, small, _line(blocks, name),
                               {r: v for r, v in mine.items() if r[0] in keys}))
-        self.raw, self.base, self.changed = raw, base, changed
+        self.raw, self.changed = raw, changed
         self.level = _Level(doc, path, {}, "", stack=(os.path.realpath(path),), cache=cache)
         self.line = _line(doc, "parameters")
         self.applies = True
@@ -284,7 +286,8 @@ class Reevaluation:
         the names given), evaluated again; the entry's other parameters (shapes the wiring
         fixed included) as loaded."""
         moved, _, _, paths = split_overrides(changes, self.raw)
-        given = {k: v for k, v in self.base.items() if k in self.changed}
+        base, _, _, base_paths = split_overrides(self.spec.overrides, self.raw)
+        given = {k: v for k, v in base.items() if k in self.changed}
         given.update(moved)           # (the --set values as given: a message blames them)
         ns = resolve_parameters(self.raw, given, self.spec.file,
                                 preset={k: v for k, v in self.spec.parameters.items()
@@ -293,7 +296,8 @@ class Reevaluation:
         level.ns, level.blocks, level.budget = ns, [], Budget()
         out = {}
         for name, small, line, sets in self.work:
-            sets = {r: paths.get((name,) + r, v) for r, v in sets.items()}
+            sets = {r: paths.get((name,) + r, base_paths.get((name,) + r, v))
+                    for r, v in sets.items()}
             level._add_block(name, small, line, sets)
             got = level.blocks.pop()
             old = self.entries_of[name]
