@@ -256,3 +256,81 @@ def test_sensitivities_that_grow_past_floats_are_said_not_finite(tmp_path):
         assert 1.9 < r.t[first] < 2.0 and np.isfinite(s[:first]).all()
         assert np.allclose(s[:first], r["x.y"][:first] / 1e-305, rtol=1e-12)
         assert f"sensitivities are not finite from t = {r.t[first]:.6g} s on" in r.notes
+
+
+# ---------------------------------------------------------------------- the memoised stage
+# A tuning calls with a new value each time: the traced variational stage is reused with
+# the moving entries' and seeds' columns of W rebound (compiled_sensitivity.variational_stage).
+
+def _counting_stages(monkeypatch):
+    """The number of variational stages traced from now on."""
+    from fwdstep.analysis import compiled_sensitivity as cs
+    made = []
+    real = cs.VariationalStage
+
+    class Counting(real):
+        def __init__(self, *args, **kwargs):
+            made.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(cs, "VariationalStage", Counting)
+    return made
+
+
+def _run(path, overrides, params):
+    r = fwdstep.simulate(fwdstep.load_diagram(path, overrides), backend="compiled",
+                         sensitivities=params)
+    assert r.backend == "compiled" and not r.notes, r.notes
+    return r
+
+
+def test_a_new_value_reuses_the_traced_stage_and_gives_a_fresh_trace_s_numbers(
+        tmp_path, monkeypatch):
+    """MIXED: alpha moves ReferenceDynamics' fused matrices, kg a fused gain's entry, a a
+    traced Sine's amplitude, adapt.gamma a traced kernel's argument.  Another value of each
+    runs the first call's machine code; the numbers are those of a fresh trace, exactly."""
+    from fwdstep.analysis import compiled_sensitivity as cs
+    path = _write(tmp_path, MIXED)
+    params = ["alpha", "kg", "a", "Ks.gain[1,1]", "adapt.gamma"]
+    cs._STAGES.clear()
+    first = _run(path, {}, params)
+    made = _counting_stages(monkeypatch)
+    moved = {"alpha": 5.5, "kg": 42.0, "a": 0.35}
+    again = _run(path, moved, params)
+    assert made == []                                   # the memo's stage, rebound
+    cs._STAGES.clear()
+    fresh = _run(path, moved, params)
+    assert made == [1]
+    for name in again.sensitivity_data["signals"]:
+        assert np.array_equal(again.sensitivity_matrix(name), fresh.sensitivity_matrix(name))
+        assert np.array_equal(again[name], fresh[name])
+    assert not np.allclose(first.sensitivity_matrix("e.y"), again.sensitivity_matrix("e.y"))
+
+
+def test_a_rebound_stage_matches_the_analytic_sensitivity(tmp_path, monkeypatch):
+    """x' = -k x (a fused integrator and gain: k is an entry of the fused matrix, seeded
+    with dM): dx/dk = -t x0 exp(-k t) at every k the memoised stage is rebound to."""
+    from fwdstep.analysis import compiled_sensitivity as cs
+    path = _write(tmp_path, DECAY)
+    cs._STAGES.clear()
+    _run(path, {}, ["k", "x0"])
+    made = _counting_stages(monkeypatch)
+    for k in (0.3, 1.9):
+        r = _run(path, {"k": k}, ["k", "x0"])
+        assert np.abs(r.sensitivity("x.y", "k") - (-r.t * 1.5 * np.exp(-k * r.t))).max() < 1e-9
+        assert np.abs(r.sensitivity("x.y", "x0") - np.exp(-k * r.t)).max() < 1e-9
+    assert made == []
+
+
+def test_a_rebound_theorem1_stage_equals_central_differences_at_the_new_value(monkeypatch):
+    from fwdstep.analysis import compiled_sensitivity as cs
+    cs._STAGES.clear()
+    _run(THEOREM1, {"t_final": 1}, ["alpha", "Gamma"])
+    made = _counting_stages(monkeypatch)
+    overrides = {"t_final": 1, "alpha": 5.0, "Gamma": 3.0}
+    r = _run(THEOREM1, overrides, ["alpha", "Gamma"])
+    assert made == []
+    for name, value in (("alpha", 5.0), ("Gamma", 3.0)):
+        ref = _compiled_differences(THEOREM1, overrides, name, value)["e.y"]
+        assert np.abs(ref).max() > 1e-8
+        assert _relative(r.sensitivity("e.y", name), ref) <= 1e-5, name

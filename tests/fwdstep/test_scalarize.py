@@ -292,3 +292,17 @@ print(r.backend, repr(float(r["i.y"][-1])))
     backend, value = out.stdout.split()
     assert backend == "compiled"
     assert abs(float(value) - math.exp(-0.25)) < 1e-8          # x' = -2.5 x to t = 0.1
+
+
+def test_the_numbers_a_branch_was_written_for_are_checked_for_other_values():
+    """A kernel's branch on a parameter fixes the code for that value (``Trace.fixed``):
+    a stage reused with other values (compiled_sensitivity's memo) asks
+    ``decisions_hold``, which is False once the branch would go the other way."""
+    tr = sz.Trace()
+    k = tr.leaf("p0", True, np.array([2.0]))
+    x = tr.leaf("x0", False)
+    y = x * 3.0 if k > 1.0 else x * 5.0
+    assert y.op == "*" and len(tr.decisions) == 1
+    assert tr.decisions_hold({k.n: np.array([1.5])})
+    assert not tr.decisions_hold({k.n: np.array([0.5])})
+    assert tr.decisions_hold({})                  # the traced value itself

@@ -339,3 +339,94 @@ def test_a_chattering_block_leaves_nan_with_a_note(tmp_path):
     assert np.abs(r.sensitivity("x.y", "x0")[before] - 1).max() < 1e-12
     assert np.abs(r.sensitivity("x.y", "a")[before] + r.t[before]).max() < 1e-12
     assert any("block 'sw' chatters there" in n for n in r.notes)
+
+
+# ---------------------------------------------------------------------- the loader's light path
+# How a parameter reaches the blocks is found by moving it 4x per column: the light path
+# (fwdstep.structure.spec.Reevaluation) evaluates only what reads it, with the loader's own
+# code; the reference is the whole reload of the file (compile_spec of load_spec).
+
+def _loaded(d, params, light: bool, monkeypatch):
+    from fwdstep.analysis import sensitivity as sens
+    from fwdstep.structure import spec as spec_module
+    resolved, P = [], 0
+    for text in params:
+        par = sens.resolve_parameter(d, text)
+        par.columns = slice(P, P + len(par.elements))
+        P += len(par.elements)
+        resolved.append(par)
+    with monkeypatch.context() as m:
+        if not light:
+            m.setattr(spec_module.Reevaluation, "__init__",
+                      lambda self, *a, **k: setattr(self, "applies", False))
+        return sens.loader_derivative(d, resolved, P)
+
+
+@pytest.mark.parametrize("params", [
+    ["alpha"],                       # ReferenceDynamics' p arrays and its initial state
+    ["a1", "T"],                     # through the qd_coefficients expression
+    ["K[0,1]", "Ks.gain[1,1]"],      # a matrix entry, a block parameter path
+    ["theta0", "q0"],                # whole arrays reaching initial states
+])
+def test_the_light_path_equals_reloading_the_file(monkeypatch, params):
+    from fwdstep.analysis.sensitivity import _PARSED
+    from fwdstep.structure.spec import Reevaluation
+    d = fwdstep.load_diagram(THEOREM1, {"t_final": 1, "Gamma": 3})
+    for text in params:
+        assert Reevaluation(d.spec, [text.split("[")[0]], _PARSED).applies, text
+    light = _loaded(d, params, True, monkeypatch)
+    whole = _loaded(d, params, False, monkeypatch)
+    assert light.p.keys() == whole.p.keys()
+    assert light.p or light.x0.any()
+    for key in whole.p:
+        assert np.abs(light.p[key] - whole.p[key]).max() <= 1e-12 * max(
+            np.abs(whole.p[key]).max(), 1e-300), key
+    assert np.abs(light.x0 - whole.x0).max() <= 1e-12 * max(np.abs(whole.x0).max(), 1e-300)
+
+
+INNER = """
+parameters: {g: 1.0}
+blocks:
+  gain: {type: Gain, gain: -g, shape: []}
+ports:
+  inputs: {u: gain.u}
+  outputs: {y: gain.y}
+"""
+
+OUTER = """
+parameters: {k: 0.7, x0: 1.5}
+blocks:
+  x: {type: Integrator, initial: x0, shape: []}
+  g: {type: subsystem, file: inner.yaml, parameters: {g: k}}
+connections: [x.y -> g.u, g.y -> x.u]
+simulation: {t_final: 2, step: 0.001, solver: rk4, log_every: 10}
+log: [x.y]
+"""
+
+
+def test_a_parameter_passed_into_a_subsystem_reloads_the_file(tmp_path):
+    """The light path does not follow subsystems: the whole file is loaded again (and the
+    derivative is still right: x' = -k x, dx/dk = -t x0 exp(-k t))."""
+    from fwdstep.analysis.sensitivity import _PARSED
+    from fwdstep.structure.spec import Reevaluation
+    (tmp_path / "inner.yaml").write_text(INNER)
+    d = fwdstep.load_diagram(_write(tmp_path, OUTER))
+    assert not Reevaluation(d.spec, ["k"], _PARSED).applies
+    assert Reevaluation(d.spec, ["x0"], _PARSED).applies
+    r = fwdstep.sensitivities(d, ["k", "x0"])
+    assert np.abs(r.sensitivity("x.y", "k") - (-r.t * 1.5 * np.exp(-0.7 * r.t))).max() < 1e-9
+    assert np.abs(r.sensitivity("x.y", "x0") - np.exp(-0.7 * r.t)).max() < 1e-9
+
+
+@pytest.mark.parametrize("asked, message", [
+    # the light path rebuilds qd's entry, whose expression fails: the --set is named
+    ("ell", "--set ell=2.002: parameter 'qd_coefficients', which uses ell, cannot be "
+            "evaluated"),
+    ("step", "simulation.t_final (1) is not a whole number of steps of 0.003"),
+    ("t_final", "simulation.t_final (1.001) is not a whole number of steps of 0.002"),
+    ("log_every", "simulation.log_every must be a whole number of steps >= 1, got 5.005"),
+])
+def test_a_parameter_beyond_the_run_time_arrays_is_refused_as_a_reload_says(asked, message):
+    d = fwdstep.load_diagram(THEOREM1, {"t_final": 1})
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        fwdstep.sensitivities(d, [asked])
