@@ -65,11 +65,13 @@ class VariationalStage(backend_numba._ScalarStage):
         self._moving: dict = {}           # (id(group op), i, j) -> its leaf
         self.sens_columns: list = []
         #: (column of W, its leaf's node number, where its value comes from): the entries
-        #: that move and their seeds (a seed column shared by equal seeds: one row each), ("p", block, name, entry) / ("dp", block, name,
+        #: that move and their seeds (a column shared by equal entries: one row each), ("p", block, name, entry) / ("dp", block, name,
         #: entry, direction) / ("M", op, i, j) / ("dM", op, i, j, direction), op the
         #: group's position in the ops (``rebound``)
         self.bindings: list = []
         self._seeds_by_value: dict = {}
+        self._moving_by_value: dict = {}
+        self._column_of: dict = {}        # leaf node number -> its column of W
         self._position = {id(op): k for k, (_, op, _) in enumerate(ops)}
         super().__init__(d, shapes, ops, fused, d.constant_signals, logged, unlogged,
                          n_stages)
@@ -84,8 +86,14 @@ class VariationalStage(backend_numba._ScalarStage):
         j = len(self.columns)
         self.columns.append(values)
         node = self.tr.leaf(f"p{j}", True, values)
+        self._column_of[node.n] = j
         self.bindings.append((j, node.n, source))
         return node
+
+    def _bind(self, node, source) -> None:
+        """Another entry whose value is that of the column ``node`` (``rebound`` checks
+        that it still is)."""
+        self.bindings.append((self._column_of[node.n], node.n, source))
 
     def _seed(self, value: float, source):
         """A seed (an entry of dp or dM): a run-time value too (not a constant written
@@ -97,16 +105,26 @@ class VariationalStage(backend_numba._ScalarStage):
         if node is None:
             node = self._seeds_by_value[values.tobytes()] = self._column(values, source)
         else:
-            j = next(j for j, n, _ in self.bindings if n == node.n)
-            self.bindings.append((j, node.n, source))
+            self._bind(node, source)
         return node
 
     def _moving_leaf(self, values, tangent, source):
-        """A parameter entry that moves: a column of W of its own, seeded."""
-        node = self._column(values, source)
-        self.seeds[node.n] = {c: self._seed(tangent[c], ("d" + source[0],) + source[1:]
-                                            + (c,))
-                              for c in range(self.P) if tangent[c] != 0.0}
+        """A parameter entry that moves: a column of W, seeded; entries equal to each other
+        with equal seeds are one column (as ``_leaf`` shares equal entries: a fused matrix
+        repeats a coefficient per joint, and its products are then shared too)."""
+        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        tangent = np.ascontiguousarray(tangent, dtype=np.float64)
+        key = values.tobytes() + tangent.tobytes()
+        seeds = [(c, ("d" + source[0],) + source[1:] + (c,)) for c in range(self.P)
+                 if tangent[c] != 0.0]
+        node = self._moving_by_value.get(key)
+        if node is not None and not np.isnan(values).any():
+            self._bind(node, source)
+            for c, src in seeds:
+                self._bind(self.seeds[node.n][c], src)
+            return node
+        node = self._moving_by_value[key] = self._column(values, source)
+        self.seeds[node.n] = {c: self._seed(tangent[c], src) for c, src in seeds}
         return node
 
     def _kernel_param(self, blk, name: str):
@@ -146,12 +164,6 @@ class VariationalStage(backend_numba._ScalarStage):
         W = self.W.copy()
         leaves = {}
         for j, n, src in self.bindings:
-            if n in leaves and src[0] in ("dp", "dM"):    # a seed shared by equal seeds
-                v = np.array([dp[(src[1], src[2])][src[3], src[4]] if src[0] == "dp" else
-                              dM[id(ops[src[1]][1])][src[4], src[2], src[3]]])
-                if not np.array_equal(v, leaves[n]):
-                    return None
-                continue
             kind = src[0]
             if kind == "p":
                 arr = np.asarray(getattr(blocks[src[1]].p, src[2]), dtype=np.float64)
@@ -164,6 +176,10 @@ class VariationalStage(backend_numba._ScalarStage):
                 v = np.array([dM[id(ops[src[1]][1])][src[4], src[2], src[3]]])
             if v.size != len(self.columns[j]):
                 return None
+            if n in leaves:               # a column shared by equal entries: still equal?
+                if not np.array_equal(v, leaves[n]):
+                    return None
+                continue
             W[:v.size, j] = v
             leaves[n] = v
         if not self.tr.decisions_hold(leaves):
