@@ -16,9 +16,10 @@ block (``sensitivity._integrate``): both differentiate the numbers fwdstep compu
 Where a parameter reaches the code:
 
 * a kernel's argument ``block.p.NAME`` moved by the parameter: its entries are leaves of
-  their own (not folded into 0, 1, -1 or shared with an equal entry, as the diagram's stage
-  does), seeded with their column of dp (entries of W as well: another value of the
-  parameter with the same pattern of zeros runs the same machine code);
+  their own (not folded into 0, 1, -1 nor shared with an unmoved entry, as the diagram's
+  stage does; shared only with an equal moving entry of equal seeds), seeded with their
+  column of dp (entries of W as well: another value of the parameter with the same pattern
+  of zeros runs the same machine code);
 * a fused linear group's matrix M (``fwdstep.core.linear.plan_fusion``): M is a product of
   the blocks' matrices, so dM/dtheta is the Richardson central difference of the fusion of
   the moved blocks (exact to round-off for the polynomials of degree <= 4 a fusion makes);
@@ -26,6 +27,12 @@ Where a parameter reaches the code:
 
 The sensitivities of logged signals are extra columns of the compiled log (``LL``), written
 at the same record as the signals.  Only x is checked against ``simulation.bound``.
+
+The traced stage is memoised (``variational_stage``) by everything the trace reads except
+the values of the moving entries and their seeds; a call with new values (a tuning's next
+evaluation) reuses the graph and the machine code with those W columns rebound
+(``VariationalStage.rebound``), unless a number a kernel's branch was written for moves
+(``Trace.decisions``): then it is traced again.
 
 Not compiled (``run_compiled`` returns the reason, and ``fwdstep.sensitivities`` takes the
 NumPy path with a one-line note in ``Result.notes``): discrete updates at sample instants,

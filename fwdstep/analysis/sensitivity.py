@@ -29,13 +29,17 @@ Parameters (``resolve_parameter``):
   array's shape appended).
 
 How a parameter reaches the run-time arrays (``block.p``), the initial state and nothing
-else is found by the loader itself: the diagram is loaded again with the parameter moved by
-+-h and +-h/2 (h = 1e-3 max(1, |value|)) and the Richardson derivative ``(4 D(h/2) - D(h))
-/ 3`` of every ``p`` array and of the initial state is taken (exact for the affine and
-polynomial expressions diagrams use, O(h^4) otherwise).  A parameter that changes anything
-else (a state size, a shape, a sample period or a Step's time, a setting kept outside
-``p``, the simulation settings) is refused by name: its effect is not a derivative of the
-run-time arrays.  The derivative of a block's outputs and state derivative with respect to
+else is found by the loader itself: the diagram is evaluated again with the parameter moved
+by +-h and +-h/2 (h = 1e-3 max(1, |value|)) and the Richardson derivative ``(4 D(h/2) -
+D(h)) / 3`` of every ``p`` array and of the initial state is taken (exact for the affine and
+polynomial expressions diagrams use, O(h^4) otherwise).  Each moved value takes the
+loader's light path where it applies (``fwdstep.structure.spec.Reevaluation``: only the
+parameters and top-level block entries that read it are evaluated again, by the loader's
+own code, and only those blocks are built again; the moved initial states are one batch),
+else the whole file is loaded again (a parameter passed into a subsystem, or read by the
+simulation settings).  A parameter that changes anything else (a state size, a shape, a
+sample period or a Step's time, a setting kept outside ``p``, the simulation settings) is
+refused by name: its effect is not a derivative of the run-time arrays.  The derivative of a block's outputs and state derivative with respect to
 its ``p`` arrays along those directions is exact for traced blocks (columns "p.NAME" of
 ``BlockJacobian``); for the others (linear forms, pinocchio and complex-arithmetic blocks)
 it is the Richardson central difference of the block along each direction, with the moved
