@@ -198,6 +198,9 @@ class VariationalStage(backend_numba._ScalarStage):
 
     def _extend(self, x, sig, logs, shapes, roots) -> None:
         tr, N, P = self.tr, self.N, self.P
+        # every node made from here on is a tangent's (the diagram's own are all made):
+        # their products and sums may be fused multiply-adds (fwdstep.compiled.llvm_ir)
+        self.contract_from = len(tr.nodes)
         tr.max_nodes = max(tr.max_nodes, MAX_NODES)
         for i in range(N):
             self.seeds[x[0, i].n] = {c: tr.leaf(f"x{N + i * P + c}", False)

@@ -3,7 +3,13 @@ llvmlite only (no numba: ``fwdstep.compiled.native_block`` uses it without impor
 
 Every node is one LLVM instruction (``fadd``, ``fmul``, ``fcmp``, ``select``, a call of the
 math intrinsic numba's own code calls), in the graph's order, with no fast-math flag, so the
-machine code does the operations of the kernels with the same IEEE results.  Shared by the
+machine code does the operations of the kernels with the same IEEE results.  The one
+exception: an ``Emitter`` may be given a range of nodes whose products and sums carry LLVM's
+``contract`` flag (the tangent nodes of a variational stage,
+``fwdstep.analysis.compiled_sensitivity``, which nothing of the diagram's own state reads),
+so that a product and the sum using it may be one fused multiply-add where the machine has
+one: those numbers then differ from unfused ones in the last bits (another, equally exact
+order of rounding).  Shared by the
 compiled backend's stage (``fwdstep.compiled.llvm_stage``) and the NumPy path's native block
 kernels (``fwdstep.compiled.native_block``).
 """
@@ -83,7 +89,10 @@ class BasicBlock:
         elif op == "-" and len(a) == 1:
             out = self.emit(f"fneg double {self.value(a[0])}")
         elif op in _ARITH:
-            out = self.emit(f"{_ARITH[op]} double {self.value(a[0])}, {self.value(a[1])}")
+            flag = " contract" if self.em.contract_from <= node.n < self.em.contract_to \
+                else ""
+            out = self.emit(f"{_ARITH[op]}{flag} double {self.value(a[0])}, "
+                            f"{self.value(a[1])}")
         elif op == "**":
             out = self.call("llvm.pow.f64", self.value(a[0]), self.value(a[1]))
         elif op == "atan2":
@@ -100,8 +109,10 @@ class BasicBlock:
 class Emitter:
     """The counter of instruction names and the functions to declare, over a function."""
 
-    def __init__(self, tr):
+    def __init__(self, tr, contract=None):
         self.tr, self.count, self.declare = tr, 0, set()
+        # nodes numbered in [from, to) may fuse a product into a sum (``contract``)
+        self.contract_from, self.contract_to = contract or (0, 0)
 
 
 _TARGET = []

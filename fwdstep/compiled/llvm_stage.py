@@ -37,7 +37,9 @@ SIGNATURE = types.int64(types.int64, types.float64, types.int64, types.int64, ty
 def stage_ir(st) -> str:
     """The LLVM IR of ``_ScalarStage`` st's stage function."""
     tr = st.tr
-    em = _Emitter(tr)
+    # (a variational stage's tangent nodes may be fused multiply-adds: llvm_ir)
+    em = _Emitter(tr, (st.contract_from, st.contract_to) if hasattr(st, "contract_to")
+                  else None)
     nodes = tr.nodes
     leaves = {}                       # leaf name -> node number
     for node in nodes:

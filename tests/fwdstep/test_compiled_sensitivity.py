@@ -330,6 +330,11 @@ def test_a_rebound_theorem1_stage_equals_central_differences_at_the_new_value(mo
     overrides = {"t_final": 1, "alpha": 5.0, "Gamma": 3.0}
     r = _run(THEOREM1, overrides, ["alpha", "Gamma"])
     assert made == []
+    # the run itself is the plain compiled run's, bit for bit (only the tangents' products
+    # and sums may be fused multiply-adds: fwdstep.compiled.llvm_stage)
+    plain = fwdstep.simulate(fwdstep.load_diagram(THEOREM1, overrides), backend="compiled")
+    for name in ("e.y", "tau.y", "adapt.theta_hat"):
+        assert np.array_equal(r[name], plain[name]), name
     for name, value in (("alpha", 5.0), ("Gamma", 3.0)):
         ref = _compiled_differences(THEOREM1, overrides, name, value)["e.y"]
         assert np.abs(ref).max() > 1e-8
