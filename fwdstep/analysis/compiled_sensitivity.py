@@ -225,6 +225,7 @@ class VariationalStage(backend_numba._ScalarStage):
                     roots.append(node)
                     col += 1
         self.log_width = col
+        self.contract_to = len(tr.nodes)      # (the guards, if any, come after: not fused)
 
     def _total_states(self, d) -> int:
         return d.n_states * (1 + self.P)
