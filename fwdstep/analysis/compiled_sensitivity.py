@@ -72,9 +72,10 @@ class VariationalStage(backend_numba._ScalarStage):
         self._moving: dict = {}           # (id(group op), i, j) -> its leaf
         self.sens_columns: list = []
         #: (column of W, its leaf's node number, where its value comes from): the entries
-        #: that move and their seeds (a column shared by equal entries: one row each), ("p", block, name, entry) / ("dp", block, name,
-        #: entry, direction) / ("M", op, i, j) / ("dM", op, i, j, direction), op the
-        #: group's position in the ops (``rebound``)
+        #: that move and their seeds (a column shared by equal entries: one row each),
+        #: ("p", block, name, entry) / ("dp", block, name, entry, direction) / ("M", op,
+        #: i, j) / ("dM", op, i, j, direction), op the group's position in the ops
+        #: (``rebound``)
         self.bindings: list = []
         self._seeds_by_value: dict = {}
         self._moving_by_value: dict = {}

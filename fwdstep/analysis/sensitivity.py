@@ -39,8 +39,9 @@ own code, and only those blocks are built again; the moved initial states are on
 else the whole file is loaded again (a parameter passed into a subsystem, or read by the
 simulation settings).  A parameter that changes anything else (a state size, a shape, a
 sample period or a Step's time, a setting kept outside ``p``, the simulation settings) is
-refused by name: its effect is not a derivative of the run-time arrays.  The derivative of a block's outputs and state derivative with respect to
-its ``p`` arrays along those directions is exact for traced blocks (columns "p.NAME" of
+refused by name: its effect is not a derivative of the run-time arrays.  The derivative of
+a block's outputs and state derivative with respect to its ``p`` arrays along those
+directions is exact for traced blocks (columns "p.NAME" of
 ``BlockJacobian``); for the others (linear forms, pinocchio and complex-arithmetic blocks)
 it is the Richardson central difference of the block along each direction, with the moved
 blocks built once per run (a linear form is linear in its matrices: exact to round-off).
@@ -242,8 +243,9 @@ def _start_state(dd) -> np.ndarray:
 
 def _start_states(d, variants: list) -> np.ndarray:
     """x(0) of ``d`` with each of ``variants`` (block name -> the block replacing ``d``'s,
-    of the same structure), (len(variants), N): one batch (``fwdstep.structure.compiler.stack_blocks``, as a sweep
-    stacks its variants), its initial state evaluated once."""
+    of the same structure), (len(variants), N): one batch
+    (``fwdstep.structure.compiler.stack_blocks``, as a sweep stacks its variants), its
+    initial state evaluated once."""
     import copy
     import dataclasses
 
@@ -266,8 +268,9 @@ def _moved_blocks(d, par, value, delta: float, cache: dict, base_signature,
     """The diagram with parameter ``par`` set to ``value``: (block name -> its block, for
     the blocks that may differ from ``d``'s; the initial state, None from the light path:
     the caller evaluates those together, ``_start_states``).  The loader's light path
-    (``light``, a ``fwdstep.structure.spec.Reevaluation``: the parameters and block entries that
-    read the moved value, evaluated again by the loader's code; those blocks built anew,
+    (``light``, a ``fwdstep.structure.spec.Reevaluation``: the parameters and block
+    entries that read the moved value, evaluated again by the loader's code; those blocks
+    built anew,
     the rest of ``d`` shared) where it applies and the rebuilt blocks keep their
     structure; else the whole file loaded again (which says what the parameter changes
     beyond the run-time arrays)."""
