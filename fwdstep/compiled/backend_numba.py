@@ -948,7 +948,7 @@ def stage_key(d, shapes, ops, fused, logged, unlogged, S, moving_p=None,
         if kind == "group":
             h.update(repr(("g", op.inputs, op.outputs, op.derivative, op.M.shape,
                            owner.state)).encode())
-            M = np.array(op.M, dtype=float)
+            M = np.array(op.M, dtype=float, order="C", ndmin=1)
             mask = moving_M.get(id(op))
             if mask is not None:
                 M[:, mask] = np.nan
@@ -964,7 +964,7 @@ def stage_key(d, shapes, ops, fused, logged, unlogged, S, moving_p=None,
         if k is not None:
             _update_value(h, tuple(k.static))
         for name in (k.params if k is not None else ()):
-            arr = np.array(getattr(blk.p, name), dtype=float)
+            arr = np.array(getattr(blk.p, name), dtype=float, order="C", ndmin=1)  # a copy
             mask = moving_p.get((blk.name, name))
             if mask is not None:
                 arr.reshape(arr.shape[0], -1)[:, mask] = np.nan
