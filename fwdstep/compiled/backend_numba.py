@@ -1367,9 +1367,10 @@ def _module_source(gen, st, log_names, record, stage_out, stage_der, final,
     stage = ["if not split:", "    ts = t + c[stg]",
              "elif stg == 0:", "    ts = max(ta, lo)",
              "else:", "    ts = min(max(ta + C[stg] * hs, lo), hi)",
-             "for i in range(N):", "    acc = xv[i]", "    for j in range(stg):",
-             "        if aw[stg, j] != 0.0:", "            acc = acc + aw[stg, j] * K2[j, i]",
-             "    Xv[i] = acc"] + stage_out
+             "for i in range(N):", "    Xv[i] = xv[i]",
+             "for j in range(stg):", "    aij = aw[stg, j]",
+             "    if aij != 0.0:", "        for i in range(N):",
+             "            Xv[i] = Xv[i] + aij * K2[j, i]"] + stage_out
     stage += ["if stg == 0 and q == q0 and (n % every == 0 or final):", "    t_log[row] = t"]
     stage += ["    " + r for r in record] + ["    row += 1", "    if final:",
                                                 "        return 0, n, row"] + stage_der
