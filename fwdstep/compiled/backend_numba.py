@@ -61,6 +61,7 @@ import math
 import os
 import sys
 import types
+import warnings
 import weakref
 
 import numpy as np
@@ -864,13 +865,20 @@ class CompiledProgram:
     def compile(self) -> None:
         """Compile the run functions now, running no step (numba compiles on first call).
         ``simulate`` calls it with signals deferred: an exception raised by a signal handler
-        inside numba's compiler callbacks is swallowed there and leaves a broken function."""
+        inside numba's compiler callbacks is swallowed there and leaves a broken function.
+        numba's note that first-class function types are experimental (printed, with its
+        terminal colour codes, when a batch's parallel loop taking the stage is compiled) is
+        not shown: the stage is always called through that one signature (``llvm_stage``),
+        which the tests of every backend check."""
+        from numba.core.errors import NumbaExperimentalFeatureWarning
         B = self.batch
-        if B == 1:
-            self.run(0, 0, 0)
-        else:
-            z = np.zeros(B, dtype=np.int64)
-            self.run_batch(0, 0, z, z.copy(), z.copy(), np.ones(B, dtype=bool))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NumbaExperimentalFeatureWarning)
+            if B == 1:
+                self.run(0, 0, 0)
+            else:
+                z = np.zeros(B, dtype=np.int64)
+                self.run_batch(0, 0, z, z.copy(), z.copy(), np.ones(B, dtype=bool))
 
     def seal(self) -> None:
         """Record the hashes of the machine code numba just cached (see compiled_cache).

@@ -376,3 +376,23 @@ def test_failed_variant_at_a_chunk_ending_on_a_declared_time(tmp_path, monkeypat
     assert ("relay", "switch falling", 0) in ev
     np.testing.assert_allclose([e.time for e in c.events], [e.time for e in n.events],
                                atol=1e-12)
+
+
+@pytest.mark.slow
+def test_a_fresh_compile_of_a_guarded_batch_prints_no_numba_warning(tmp_path):
+    """The first compile of a batch whose loop watches guards (empty caches) printed numba's
+    NumbaExperimentalFeatureWarning, colour codes and all, on the user's terminal."""
+    import os
+    import subprocess
+    import sys
+    path = tmp_path / "ball.yaml"
+    path.write_text(BALL)
+    env = dict(os.environ, FWDSTEP_CACHE_DIR=str(tmp_path / "fc"),
+               NUMBA_CACHE_DIR=str(tmp_path / "nc"))
+    done = subprocess.run([sys.executable, "-c", "import sys; from fwdstep.cli.arguments "
+                           "import main; sys.exit(main())", "sweep", str(path),
+                           "--grid", "v.initial=0,1,2", "--backend", "compiled", "-q",
+                           "-o", str(tmp_path / "out")], capture_output=True, text=True,
+                          env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "Warning" not in done.stderr and "\x1b[" not in done.stderr, done.stderr
