@@ -3,7 +3,8 @@
 Every run written by ``Result.write_files`` (``fwdstep run``, ``Result.save``) and every
 sweep records, in ``summary.json`` / ``sweep.json`` under ``"provenance"``:
 
-* ``fwdstep_version`` (and ``source_commit`` of a git checkout), Python and NumPy versions;
+* ``fwdstep_version`` (and ``source_commit`` of a git checkout), Python and NumPy versions,
+  and those of scipy, numba, llvmlite and pinocchio when the process loaded them;
 * ``command``: the command line, ``sets``: every ``--set`` as typed (block paths included),
   ``overrides``: the same as values (from the Python API too);
 * ``backend`` used and ``simulation``: every solver setting as run;
@@ -43,7 +44,17 @@ def environment() -> dict:
         out["source_commit"] = commit
     out.update(python=platform.python_version(), numpy=np.__version__,
                platform=platform.platform(terse=True))
+    for name in OPTIONAL_NUMERICS:       # those this process loaded (none is imported here)
+        module = sys.modules.get(name)
+        if module is not None and getattr(module, "__version__", None):
+            out[name] = str(module.__version__)
     return out
+
+
+#: optional packages that compute numbers of a run when loaded: scipy (solve_ivp, the
+#: analyses), numba and llvmlite (the compiled backend; llvmlite also the native kernels of
+#: the NumPy path's robot blocks), pinocchio (URDF robots)
+OPTIONAL_NUMERICS = ("scipy", "numba", "llvmlite", "pinocchio")
 
 
 def plugins_used(spec) -> list:

@@ -192,3 +192,26 @@ def test_a_sweep_records_its_diagram_and_command(tmp_path, monkeypatch):
     assert record["provenance"]["sets"] == ["simulation.t_final=0.2"]
     assert record["provenance"]["grid"] == ["alpha=3,4"]
     assert record["sweep"]["variants"] == [{"alpha": 3}, {"alpha": 4}]
+
+
+def test_the_record_names_the_optional_packages_that_computed(tmp_path):
+    """A two-link run in a fresh process: with llvmlite installed the arm and its regressor
+    run as native code on the NumPy path, and the record gives llvmlite's version (and
+    those of the other optional numeric packages the process loaded, none it did not)."""
+    out = str(tmp_path / "run")
+    code = ("import json, sys; from fwdstep.cli.arguments import main; "
+            f"rc = main(['run', {THEOREM1!r}, '--set', 't_final=0.1', '-o', {out!r}, '-q', "
+            "'--no-plots']); print(json.dumps({n: getattr(sys.modules.get(n), '__version__', "
+            "None) for n in ('scipy', 'numba', 'llvmlite', 'pinocchio')})); sys.exit(rc)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    loaded = json.loads(done.stdout.strip().splitlines()[-1])
+    prov = _summary(out)["provenance"]
+    for name, version in loaded.items():
+        assert prov.get(name) == version, name            # loaded: recorded; else absent
+    try:
+        import llvmlite
+    except ImportError:
+        return
+    assert prov["llvmlite"] == llvmlite.__version__       # the native two-link kernels
