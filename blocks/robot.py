@@ -322,6 +322,17 @@ def point_mass_regressor_output(t, x, q, qdot, zeta, zetad):
     return (Y,)
 
 
+def _native_in_batches(self, batch: int) -> tuple:
+    """The two-link arm's and its regressor's kernels as native code on the NumPy path for a
+    batch of variants (a sweep), not for one run.  Whole ``simulate`` of slotine_li.yaml with
+    both native against their NumPy kernels, CPU medians of interleaved repeats in one
+    process: 0.82 (256 variants, 10 s), 0.87 (4096, 1 s), 0.93 (one variant, 10 s); but a
+    single run in a fresh process pays llvmlite's import and the trace first (~30 ms), and
+    a whole ``fwdstep run`` of theorem1.yaml was no faster (1.05-1.09 of the hand script
+    against 1.05 without; slotine_li.yaml 3 % faster): below the 5 % a fast path must pay."""
+    return self.native_kernels if batch > 1 else ()
+
+
 @register
 class TwoLinkArm(MechanicalPlant):
     """Two-link planar arm (Slotine & Li): H(q) qddot + C(q, qdot) qdot + g(q) = tau + tau_star.
@@ -378,12 +389,11 @@ class TwoLinkArm(MechanicalPlant):
         "qdot0": Param("array", 0.0, "initial joint velocity [qdot1, qdot2] (rad/s)"),
     }
     example = {"q0": [0.1, -0.2], "qdot0": [0.0, 0.5], "gravity": 9.81}
-    #: NumPy path: the derivative as native code when llvmlite is installed (Block.native_kernels;
-    #: the same kernel, traced and compiled for the arm: the NumPy kernel makes ~40 array calls
-    #: per stage).  Whole run of slotine_li.yaml, CPU medians of interleaved repeats in one
-    #: process: 0.93 (1 variant, 10 s), 0.82 (256), 0.87 (4096, 1 s), with the Regressor's;
-    #: a fresh process's whole run is unchanged (theorem1.yaml) or 3 % faster (slotine_li.yaml)
+    #: NumPy path, batches: the derivative as native code when llvmlite is installed
+    #: (Block.native_kernels, ``_native_in_batches``; the same kernel, traced and compiled for
+    #: the arm: the NumPy kernel makes ~40 array calls per stage)
     native_kernels = ("derivative",)
+    native_wanted = _native_in_batches
 
     @staticmethod
     def parameter_vector(**params) -> np.ndarray:
@@ -515,8 +525,9 @@ class Regressor(Block):
         "l1": Param("float", 0.0, "length of link 1 (m), for p = 5"),
     }
     example = {"gravity": 9.81}
-    #: NumPy path: native code when llvmlite is installed (see TwoLinkArm.native_kernels)
+    #: NumPy path, batches: native code when llvmlite is installed (see TwoLinkArm)
     native_kernels = ("output",)
+    native_wanted = _native_in_batches
 
     def setup(self, gravity, p, l1):
         self._gravity = gravity != 0.0

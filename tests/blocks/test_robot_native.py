@@ -68,14 +68,27 @@ def test_the_native_regressor_satisfies_property3(gravity, batch):
 @pytest.mark.parametrize("name", ["slotine_li.yaml", "theorem1.yaml", "theorem4.yaml"])
 def test_the_two_link_diagrams_give_the_numbers_of_their_runs_without_native_code(
         name, monkeypatch):
+    """A batch of three variants (a sweep) runs the arm and its regressor natively and gives
+    the numbers of the same batch without native code; a single run keeps the NumPy
+    kernels (``_native_in_batches``: one run does not win back llvmlite's import)."""
+    from fwdstep.structure.compiler import compile_batch
+    from fwdstep.structure.spec import load_spec
     path = os.path.join(ROOT, "diagrams", name)
-    d = fwdstep.load_diagram(path, overrides={"t_final": 0.2})
+    values = [{"t_final": 0.2, "K": [[k, 0.0], [0.0, k]]} for k in (20.0, 50.0, 90.0)]
+
+    def batch():
+        return compile_batch([load_spec(path, v) for v in values])
+
+    single = fwdstep.load_diagram(path, overrides=values[0])
+    assert not any(type(s.block) in (TwoLinkArm, Regressor) and id(s.block) in native
+                   for native in [native_methods(single)] for s in single.schedule)
+    d = batch()
     native = native_methods(d)
     arms = [s.block for s in d.schedule if type(s.block) in (TwoLinkArm, Regressor)]
     assert arms and all(id(b) in native for b in arms)
     got = fwdstep.simulate(d)
     monkeypatch.setattr(program, "PLUGGED_NATIVE", "fwdstep.no_such_module")
-    reference = fwdstep.load_diagram(path, overrides={"t_final": 0.2})
+    reference = batch()
     assert native_methods(reference) == {}
     want = fwdstep.simulate(reference)
     for signal in want.names:
