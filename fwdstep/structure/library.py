@@ -102,11 +102,15 @@ def _load_file(path: str):
     module = importlib.util.module_from_spec(spec)
     module.__fwdstep_plugin__ = path
     with open(full, "rb") as fh:             # what is imported, for the record of each run
-        module.__fwdstep_sha256__ = hashlib.sha256(fh.read()).hexdigest()
+        data = fh.read()
+    module.__fwdstep_sha256__ = hashlib.sha256(data).hexdigest()
     sys.modules[name] = module
     _plugin_files[full] = module
     try:
-        spec.loader.exec_module(module)
+        # exactly the bytes hashed: the import system would take __pycache__'s bytecode when
+        # the file was edited within the same second to the same size (its check is mtime
+        # and size), running the old code under the new file's SHA-256
+        exec(compile(data, full, "exec"), module.__dict__)  # noqa: S102 - the user's plugin
     except ConfigError as exc:
         del sys.modules[name], _plugin_files[full]
         raise ConfigError(f"plugin '{path}': {exc.message}") from None

@@ -95,7 +95,7 @@ def test_replaced_numba_index_is_discarded_before_numba_can_load_it(folder, capf
     name = _name(source)
     mod = compiled_cache.load(source)
     pyc = folder / "__pycache__"
-    pyc.mkdir()
+    pyc.mkdir(exist_ok=True)      # (Python may have put the module's bytecode there)
     index = pyc / f"{name}.run_one-24.py311.nbi"
     index.write_bytes(b"written by numba in this process")
     compiled_cache.seal(mod)
@@ -115,7 +115,7 @@ def test_unrecorded_numba_files_are_removed_quietly_and_recorded_ones_kept(folde
     name = _name(source)
     mod = compiled_cache.load(source)
     pyc = folder / "__pycache__"
-    pyc.mkdir()
+    pyc.mkdir(exist_ok=True)      # (Python may have put the module's bytecode there)
     sealed = pyc / f"{name}.run_one-24.py311.nbi"
     sealed.write_bytes(b"written by numba in this process")
     compiled_cache.seal(mod)
@@ -133,7 +133,7 @@ def test_sealed_numba_files_are_kept(folder, capfd):
     name = _name(source)
     mod = compiled_cache.load(source)
     pyc = folder / "__pycache__"
-    pyc.mkdir()
+    pyc.mkdir(exist_ok=True)      # (Python may have put the module's bytecode there)
     index = pyc / f"{name}.run_one-24.py311.nbi"
     index.write_bytes(b"written by numba in this process")
     compiled_cache.seal(mod)

@@ -231,3 +231,58 @@ simulation: {{t_final: 14.0, step: 0.1, solver: {solver}}}
     assert [e.kind for e in r.events] == ["level falling", "level rising"] * 2
     np.testing.assert_array_equal(r["c.y"], (r.t >= 2 * pi).astype(float)
                                   + (r.t >= 4 * pi))
+
+
+def test_an_edited_plugin_runs_its_new_text_never_stale_bytecode(tmp_path):
+    """A plugin edited within the same second to the same size (Python's bytecode check is
+    the source's mtime and size) must run the new text, the text whose SHA-256 the run
+    records: with a __pycache__ entry of the old text beside it, the import system ran the
+    old code."""
+    import hashlib
+    import importlib.util
+    import py_compile
+    body = textwrap.dedent('''
+        import numpy as np
+        from fwdstep.core.block import Block
+        from fwdstep.core.registry import register
+
+
+        def scaled_output(t, x, u):
+            return (2.0 * u,)
+
+
+        @register
+        class StaleCheck(Block):
+            """y = c u.
+
+            Equation: y = c u.
+            """
+            params = {}
+
+            def setup(self):
+                self.declare_input("u", ())
+                self.declare_output("y", ())
+                self.set_kernels(output=scaled_output)
+        ''')
+    plugin = tmp_path / "stale_check.py"
+    plugin.write_text(body)
+    py_compile.compile(str(plugin), cfile=importlib.util.cache_from_source(str(plugin)))
+    stamp = os.stat(plugin)
+    plugin.write_text(body.replace("2.0 * u", "3.0 * u"))           # same size
+    os.utime(plugin, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))      # same second
+    diagram = tmp_path / "d.yaml"
+    diagram.write_text("blocks:\n  c: {type: Constant, value: 1.0}\n  g: {type: StaleCheck}\n"
+                       "connections:\n  - c.y -> g.u\nsimulation: {t_final: 0.01}\n")
+    code = ("import fwdstep, json, sys; "
+            f"r = fwdstep.simulate(fwdstep.load_diagram({str(diagram)!r}, "
+            f"plugins=[{str(plugin)!r}])); "
+            "from fwdstep.structure.library import plugin_files; "
+            "print(json.dumps([float(r['g.y'][-1]), plugin_files()[0][1]]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env={k: v for k, v in os.environ.items()
+                                            if k != "PYTHONDONTWRITEBYTECODE"})
+    assert done.returncode == 0, done.stderr
+    import json
+    value, digest = json.loads(done.stdout.strip().splitlines()[-1])
+    assert value == 3.0
+    assert digest == hashlib.sha256(plugin.read_bytes()).hexdigest()
