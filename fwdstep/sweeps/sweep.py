@@ -75,8 +75,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fwdstep.structure.compiler import _value_key, compile_variants, instantiate_variants, structure_signature
+from fwdstep.core import signals
 from fwdstep.core.budgets import BudgetError
-from fwdstep.sweeps.distributed import check_workers, dask_client, local_cores, run_jobs
+from fwdstep.sweeps.distributed import (WorkerLost, check_workers, dask_client, local_cores,
+                                        run_jobs)
 from fwdstep.core.errors import (BlockRuntimeError, ConfigError, DiagramError, DivergenceError,
                                  OutputError, printable)
 from fwdstep.results.result import batch_error_metrics
@@ -699,7 +701,6 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, co
                  sequential, max_memory, batch_size, out, resume, keep_signals, progress,
                  wall0) -> SweepResult:
     from fwdstep.structure.library import plugin_sources
-    from fwdstep.sweeps.distributed import WorkerLost
     metric = base.metrics.get("error")
     batches = plan_batches(specs, blocks, metric, sequential=sequential, workers=concurrent,
                            max_memory=parse_size(max_memory), batch_size=batch_size)
@@ -730,24 +731,14 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, co
     stream = run_jobs(run_job, jobs, workers=concurrent, client=client)
     try:
         for finished, (job, part) in enumerate(stream, 1):
-            description = _describe(table[job.indices[0]].values, names, short=True)
-            if isinstance(part, WorkerLost):      # not written: --resume runs them again
-                _absorb(result, lost_part(job, part.reason))
-                result.lost += len(job.indices)
-            else:
-                try:
-                    _store(result, part, out)
-                except OutputError as exc:        # a full disk: stop, keep what is written
-                    _absorb(result, part)
-                    result.write_failed = str(exc)
-                    stream.close()
-                    break
-            result.batches.append((len(job.indices), description))
-            if progress is not None:
-                more = ("s", ", ...") if len(job.indices) > 1 else ("", "")
-                lost = f" LOST ({part.reason})" if isinstance(part, WorkerLost) else " done"
-                progress(f"batch {finished}/{len(jobs)}{lost}: {len(job.indices)} "
-                         f"variant{more[0]} ({description}{more[1]})")
+            # a finished batch is written and counted whole: a signal arriving meanwhile (a
+            # batch system's SIGTERM inside np.savez broke the zip file being written and
+            # ended the sweep with a traceback) acts once the batch is kept
+            with signals.held():
+                stop = _take(result, job, part, out, stream, table, names, finished,
+                             len(jobs), progress)
+            if stop:
+                break
     except KeyboardInterrupt as exc:
         stream.close()
         result.interrupted = True
@@ -757,6 +748,31 @@ def _run_planned(path, names, all_values, specs, blocks, base, table, client, co
                 v.status = "interrupted"
     result.wall_time = time.perf_counter() - wall0
     return result
+
+
+def _take(result, job, part, out, stream, table, names, finished: int, total: int,
+          progress) -> bool:
+    """A finished batch into the result (and to disk): True when the sweep must stop (the
+    output could not be written: what is written is kept)."""
+    description = _describe(table[job.indices[0]].values, names, short=True)
+    if isinstance(part, WorkerLost):      # not written: --resume runs them again
+        _absorb(result, lost_part(job, part.reason))
+        result.lost += len(job.indices)
+    else:
+        try:
+            _store(result, part, out)
+        except OutputError as exc:        # a full disk: stop, keep what is written
+            _absorb(result, part)
+            result.write_failed = str(exc)
+            stream.close()
+            return True
+    result.batches.append((len(job.indices), description))
+    if progress is not None:
+        more = ("s", ", ...") if len(job.indices) > 1 else ("", "")
+        lost = f" LOST ({part.reason})" if isinstance(part, WorkerLost) else " done"
+        progress(f"batch {finished}/{total}{lost}: {len(job.indices)} "
+                 f"variant{more[0]} ({description}{more[1]})")
+    return False
 
 
 def lost_part(job: BatchJob, reason: str) -> dict:

@@ -277,7 +277,8 @@ def test_an_edited_plugin_runs_its_new_text_never_stale_bytecode(tmp_path):
             f"r = fwdstep.simulate(fwdstep.load_diagram({str(diagram)!r}, "
             f"plugins=[{str(plugin)!r}])); "
             "from fwdstep.structure.library import plugin_files; "
-            "print(json.dumps([float(r['g.y'][-1]), plugin_files()[0][1]]))")
+            "print(json.dumps([float(r['g.y'][-1]), "
+            f"dict(plugin_files())[{os.path.realpath(plugin)!r}]]))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120, env={k: v for k, v in os.environ.items()
                                             if k != "PYTHONDONTWRITEBYTECODE"})

@@ -442,3 +442,29 @@ def test_the_garbage_collector_is_left_as_it_was(path):
         assert gc.get_freeze_count() > mine // 2                     # not released
     finally:
         gc.unfreeze()
+
+
+def test_a_signal_while_a_batch_is_written_keeps_that_batch(path, tmp_path, monkeypatch):
+    """SIGTERM arriving while a finished batch's part is written (inside np.savez): the
+    part is written whole and counted, then the sweep ends as interrupted (it broke the zip
+    file being written and ended ``fwdstep sweep`` with a traceback, exit 1)."""
+    import glob
+    import os
+    import signal
+    from fwdstep.core import signals
+    real, calls = np.savez, []
+
+    def savez(fh, **part):
+        calls.append(1)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)     # delivered here, mid-write
+        return real(fh, **part)
+
+    monkeypatch.setattr(np, "savez", savez)
+    out = str(tmp_path / "o")
+    with signals.handled():
+        result = run_sweep(path, {"K": [20, 30, 40]}, workers=1, batch_size=1, outdir=out)
+    assert result.interrupted and result.signal_number == signal.SIGTERM
+    assert [v.status for v in result.variants] == ["ok", "interrupted", "interrupted"]
+    assert len(result.batches) == 1
+    assert len(glob.glob(os.path.join(out, "parts", "*.npz"))) == 1
