@@ -156,6 +156,7 @@ def load(source: str) -> types.ModuleType:
     folder = cache_dir()
     reason = private_dir(folder)
     if reason is not None:
+        _REFUSALS_TOLD.add(reason)
         warn(f"compiled-code cache refused: {reason}; compiling in memory")
         return _in_memory(source, name)
     path = os.path.join(folder, f"{name}.py")
@@ -249,11 +250,21 @@ def seal_folder(folder: str) -> None:
 NATIVE = "native"
 
 
+#: the reasons a cache folder was refused that this process has printed (the NumPy path's
+#: native kernels ask for the folder at each kernel: the user is told once, not never)
+_REFUSALS_TOLD: set = set()
+
+
 def _native_paths(key: str):
     base = cache_dir()
     folder = os.path.join(base, NATIVE)
     for path in (base, folder):
-        if private_dir(path) is not None:
+        reason = private_dir(path)
+        if reason is not None:
+            if reason not in _REFUSALS_TOLD:
+                _REFUSALS_TOLD.add(reason)
+                warn(f"compiled-code cache refused: {reason}; native kernels compiled in "
+                     "memory")
             return None
     return folder, os.path.join(folder, f"{key}.o"), os.path.join(folder, f"{key}.sha256")
 

@@ -212,3 +212,26 @@ def test_an_llvm_failure_warns_once_and_keeps_the_method(monkeypatch, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["fwdstep: warning: block 'Y': its native output kernel did not compile "
                    "(LLVM ERROR: out of registers); running its method"]
+
+
+def test_a_refused_cache_folder_is_said_once_and_the_kernel_still_runs(tmp_path, monkeypatch,
+                                                                        capsys):
+    """A file where the cache folder should be: the NumPy path's native kernels compile in
+    memory and the user is told why once per process (the numba path says it too), not
+    never (every later process would silently pay the compile again)."""
+    from fwdstep.compiled import compiled_cache, native_block
+    where = tmp_path / "cache"
+    where.write_text("not a directory")
+    monkeypatch.setenv("FWDSTEP_CACHE_DIR", str(where))
+    monkeypatch.setattr(compiled_cache, "_REFUSALS_TOLD", set(), raising=False)
+    Y = URDFRegressor("Y", robot="ur5")
+    u = tuple(np.random.default_rng(3).uniform(-1.0, 1.0, (4, 1, 6)))
+    want = Y.output(0.0, None, u)[0]                 # pinocchio
+    capsys.readouterr()
+    for _ in range(2):                               # a second process's first call, twice
+        monkeypatch.setattr(native_block, "_compiled", {})
+        _close(native_kernel(Y, "output", 1)(0.0, None, u)[0], want)
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"fwdstep: warning: compiled-code cache refused: {where} exists and is not "
+                   "a directory; native kernels compiled in memory"]
+    assert where.read_text() == "not a directory"
