@@ -104,6 +104,7 @@ def _load_file(path: str):
     with open(full, "rb") as fh:             # what is imported, for the record of each run
         data = fh.read()
     module.__fwdstep_sha256__ = hashlib.sha256(data).hexdigest()
+    module.__fwdstep_source__ = data           # what workers and a sweep's identity get
     sys.modules[name] = module
     _plugin_files[full] = module
     try:
@@ -151,40 +152,37 @@ def _module_name(full: str) -> str:
 
 
 def plugin_sources(classes=None) -> dict:
-    """The plugin files loaded in this process: real path -> source text (what a worker on
-    another machine needs to load the same blocks, ``load_plugin_sources``); with
-    ``classes``, only the files that define one of them (the blocks a diagram uses)."""
-    out = {}
+    """The plugin files loaded in this process: real path -> the bytes imported (hashed in
+    the record of each run; what a worker on another machine needs to load the same blocks,
+    ``load_plugin_sources``, and what a sweep's identity hashes), never the file read again
+    (edited since, or in an encoding its coding line declares, it would differ or fail);
+    with ``classes``, only the files that define one of them (the blocks a diagram uses)."""
     modules = None if classes is None else {c.__module__ for c in classes}
-    for full, module in _plugin_files.items():
-        if modules is not None and module.__name__ not in modules:
-            continue
-        try:
-            with open(full, encoding="utf-8") as fh:
-                out[full] = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"plugin '{full}' cannot be read again to send it to the "
-                              f"workers: {exc}") from None
-    return out
+    return {full: module.__fwdstep_source__ for full, module in _plugin_files.items()
+            if modules is None or module.__name__ in modules}
 
 
 def load_plugin_sources(sources: dict) -> None:
-    """In a worker process: load plugin files from their text (``plugin_sources`` of the
-    process that sent the jobs), each once, under the module name it had there."""
+    """In a worker process: load plugin files from their bytes (``plugin_sources`` of the
+    process that sent the jobs; text is taken as UTF-8), each once, under the module name
+    it had there."""
     load_library()
-    for full, text in sources.items():
+    for full, data in sources.items():
         if full in _plugin_files or _module_name(full) in sys.modules:
             continue
+        if isinstance(data, str):
+            data = data.encode("utf-8")
         name = _module_name(full)
         module = importlib.util.module_from_spec(
             importlib.util.spec_from_loader(name, loader=None, origin=full))
         module.__file__ = full
         module.__fwdstep_plugin__ = full
-        module.__fwdstep_sha256__ = hashlib.sha256(text.encode()).hexdigest()
+        module.__fwdstep_sha256__ = hashlib.sha256(data).hexdigest()
+        module.__fwdstep_source__ = data
         sys.modules[name] = module
         _plugin_files[full] = module
         try:
-            exec(compile(text, full, "exec"), module.__dict__)  # noqa: S102 - the user's plugin
+            exec(compile(data, full, "exec"), module.__dict__)  # noqa: S102 - the user's plugin
         except BaseException as exc:
             del sys.modules[name], _plugin_files[full]
             raise ConfigError(f"plugin '{full}' failed to load in a worker: "

@@ -96,7 +96,7 @@ def sweep_identity(path: str, loader, overrides: dict, all_values: list,
     return {"written_by": "fwdstep sweep",
             "fwdstep": __version__,
             "files": _files(path, loader),
-            "plugins": {p: hashlib.sha256(text.encode()).hexdigest() for p, text in sorted(
+            "plugins": {p: hashlib.sha256(data).hexdigest() for p, data in sorted(
                 plugin_sources({e.cls for e in loader.base.blocks}).items())},
             "overrides": canonical(dict(overrides)),
             "settings": canonical(loader.base.simulation),

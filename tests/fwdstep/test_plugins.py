@@ -287,3 +287,70 @@ def test_an_edited_plugin_runs_its_new_text_never_stale_bytecode(tmp_path):
     value, digest = json.loads(done.stdout.strip().splitlines()[-1])
     assert value == 3.0
     assert digest == hashlib.sha256(plugin.read_bytes()).hexdigest()
+
+
+def test_workers_and_a_sweeps_identity_get_the_plugin_bytes_that_were_imported(tmp_path,
+                                                                               monkeypatch):
+    """A plugin written in Latin-1 (PEP 263 coding line) with CRLF line ends runs with
+    'fwdstep run'; a sweep of it must too (its identity, and the dask workers, were given
+    the file read again as UTF-8: 'cannot be read again to send it to the workers'), and
+    what they get is the very bytes imported and hashed, even after the file was edited."""
+    import hashlib
+    import pickle
+
+    from fwdstep.structure.library import load_plugins, plugin_files, plugin_sources
+    from fwdstep.sweeps.sweep import run_sweep
+    body = textwrap.dedent('''\
+        # -*- coding: latin-1 -*-
+        # y = 2 u (caf\xe9)
+        from fwdstep.core.block import Block
+        from fwdstep.core.registry import register
+
+
+        def latin_output(t, x, u):
+            return (2.0 * u,)
+
+
+        @register
+        class LatinScale(Block):
+            """y = 2 u.
+
+            Equation: y = 2 u.
+            """
+            params = {}
+
+            def setup(self):
+                self.declare_input("u", ())
+                self.declare_output("y", ())
+                self.set_kernels(output=latin_output)
+        ''').replace("\n", "\r\n").encode("latin-1")
+    plugin = tmp_path / "latin_scale.py"
+    plugin.write_bytes(body)
+    monkeypatch.setenv("FWDSTEP_PLUGINS", os.environ.get("FWDSTEP_PLUGINS", ""))  # restored
+    load_plugins([str(plugin)])
+    full = os.path.realpath(plugin)
+    plugin.write_bytes(body.replace(b"2.0 * u", b"5.0 * u"))       # edited after the import
+    sent = plugin_sources()[full]
+    assert sent == body
+    assert hashlib.sha256(sent).hexdigest() == dict(plugin_files())[full]
+    diagram = tmp_path / "d.yaml"
+    diagram.write_text("parameters: {a: 1.0}\nblocks:\n  c: {type: Constant, value: a}\n"
+                       "  g: {type: LatinScale}\nconnections:\n  - c.y -> g.u\n"
+                       "simulation: {t_final: 0.01}\nmetrics: {error: g.y}\n")
+    result = run_sweep(str(diagram), {"a": [1.0, 3.0]}, workers=1,
+                       outdir=str(tmp_path / "sweep"))
+    assert [v.status for v in result.variants] == ["ok", "ok"]
+    jobs = tmp_path / "sources.pickle"            # a worker on another machine: only the
+    jobs.write_bytes(pickle.dumps(plugin_sources()))
+    code = ("import pickle, sys; from fwdstep.structure import library as L; "
+            f"L.load_plugin_sources(pickle.load(open({str(jobs)!r}, 'rb'))); "
+            "from fwdstep.core.block import Block; import numpy as np; "
+            "cls = L.lookup('LatinScale'); b = cls('g'); "
+            f"print(float(b.output(0.0, None, (np.ones((1,)),))[0][0]), "
+            f"dict(L.plugin_files())[{full!r}])")
+    env = {k: v for k, v in os.environ.items() if k != "FWDSTEP_PLUGINS"}   # bytes sent
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    value, digest = done.stdout.split()
+    assert float(value) == 2.0 and digest == dict(plugin_files())[full]
