@@ -11,7 +11,9 @@ gradients together.  The search:
 
 1. *screening*: ``screen`` points of a space-filling design over the box (``--design``,
    scrambled Sobol by default: ``fwdstep.sweeps.sampling.unit_points``), plus the diagram's
-   own values when they lie inside, each one plain run (no sensitivities);
+   own values when they lie inside, each one plain run (no sensitivities); the tuned values
+   are the best point evaluated inside the box (the diagram's own values outside it are
+   the 'before', never the answer);
 2. *local searches* from the ``starts`` best screened points (feasible first, then least
    violation): L-BFGS-B on the box without constraints, SLSQP with them, in coordinates
    scaled to [0, 1] per parameter and the objective scaled by its value at the start; each
@@ -67,6 +69,10 @@ def parse_vary(items) -> dict:
         lo, hi = float(m.group("lo")), float(m.group("hi"))
         if not lo < hi:
             raise ConfigError(f"--vary '{text}': LOW must be below HIGH")
+        if m.group("name") in out:      # (the last bounds won, silently)
+            first = out[m.group("name")]
+            raise ConfigError(f"--vary '{text}': {m.group('name')} is already varied over "
+                              f"{first[0]:g}:{first[1]:g}; give each name once")
         out[m.group("name")] = (lo, hi)
     if not out:
         raise ConfigError("tune needs at least one --vary NAME=LOW:HIGH")
@@ -232,15 +238,20 @@ def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
     # the diagram as given
     start_ev = prob.evaluate(prob.x0, "start", gradient=False)
     say(start_ev, best_so_far())
-    interrupted = False
+    interrupted = None
     try:
         _search(prob, lo, hi, span, n, screen, starts, design, seed, max_iterations, say,
                 best_so_far)
-    except KeyboardInterrupt:               # Ctrl-C: keep what was evaluated
-        interrupted = True
-    feasible = [e for e in prob.history if e.feasible]
-    pool = feasible or [e for e in prob.history if e.status == "ok"]
+    except KeyboardInterrupt as exc:        # Ctrl-C: keep what was evaluated
+        interrupted = exc
+    # the answer lies in the box asked for: the diagram's own values outside it (a start
+    # better than every point inside was reported as the tuned one, out of bounds)
+    inside = [e for e in prob.history if _inside(e, lo, hi)]
+    feasible = [e for e in inside if e.feasible]
+    pool = feasible or [e for e in inside if e.status == "ok"]
     if not pool:
+        if interrupted is not None and not inside:
+            raise interrupted                   # (nothing inside the bounds was run yet)
         raise ConfigError("every tuning run failed; narrow the --vary ranges", file=path)
     best = min(pool, key=lambda e: (prob.violation(e), e.cost))
     result = TuneResult(
@@ -251,12 +262,16 @@ def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
         initial_constraints=list(start_ev.constraints), history=prob.history,
         runs={"plain": prob.plain_runs, "with_sensitivities": prob.sensitivity_runs,
               "total": prob.plain_runs + prob.sensitivity_runs},
-        message=("interrupted; " if interrupted else "") + (
+        message=("interrupted; " if interrupted is not None else "") + (
             "" if feasible else "no evaluated point satisfies every constraint; the least "
                                 "violating one is reported"))
     if outdir is not None:
         result.files = write_tune(prob, result, outdir, figures)
     return result
+
+
+def _inside(ev: Evaluation, lo, hi) -> bool:
+    return bool(np.all(ev.values >= lo) and np.all(ev.values <= hi))
 
 
 def _search(prob, lo, hi, span, n, screen, starts, design, seed, max_iterations, say,
@@ -270,10 +285,11 @@ def _search(prob, lo, hi, span, n, screen, starts, design, seed, max_iterations,
     for x in points:
         ev = prob.evaluate(x, "screen", gradient=False)
         say(ev, best_so_far())
-    candidates = [e for e in prob.history if np.all(e.values >= lo) and np.all(e.values <= hi)]
+    candidates = [e for e in prob.history if _inside(e, lo, hi)]
     candidates.sort(key=lambda e: (prob.violation(e), e.cost))
-    # 2. local searches
-    seeds = candidates[:max(1, int(starts))]
+    # 2. local searches (from the diagram's own values brought into the box when nothing
+    # inside was screened)
+    seeds = candidates[:max(1, int(starts))] or prob.history[:1]
     for k, first in enumerate(seeds):
         scale = abs(first.cost) if np.isfinite(first.cost) and first.cost != 0 else 1.0
         cache: dict = {}

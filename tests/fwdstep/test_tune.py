@@ -126,3 +126,30 @@ def test_compiled_backend_tunes_the_same_search(pi_diagram):
     for k in BOUNDS:
         assert b.best[k] == pytest.approx(a.best[k], rel=1e-8)
     assert b.best_cost == pytest.approx(a.best_cost, rel=1e-9)
+
+
+def test_the_tuned_values_lie_in_the_bounds_even_when_the_start_is_better(pi_diagram):
+    """Kp = 0.5 as written, tuned over [0.05, 0.3] where every point is worse (exact ISE
+    increasing as Kp falls): the answer is the best point of the box (Kp = 0.3, on its
+    edge), not the diagram's own value outside it (which was reported as 'after')."""
+    box = (0.05, 0.3)
+    grid = np.linspace(*box, 201)
+    exact = [_exact_ise(k, 0.2) for k in grid]
+    assert _exact_ise(0.5, 0.2) < min(exact)              # the start beats the whole box
+    r = tune(pi_diagram, {"Kp": box}, "ise(e.y)", screen=4, starts=1, max_iterations=10)
+    assert box[0] <= r.best["Kp"] <= box[1]
+    assert _exact_ise(r.best["Kp"], 0.2) <= 1.01 * min(exact)
+    assert r.initial["Kp"] == 0.5                          # 'before' is still the diagram's
+    # no screening: the search starts from the diagram's values brought into the box
+    r = tune(pi_diagram, {"Kp": box}, "ise(e.y)", screen=0, starts=1, max_iterations=10)
+    assert box[0] <= r.best["Kp"] <= box[1]
+    assert _exact_ise(r.best["Kp"], 0.2) <= 1.01 * min(exact)
+
+
+def test_a_name_varied_twice_is_refused():
+    from fwdstep.core.errors import ConfigError
+    from fwdstep.sweeps.tune import parse_vary
+    with pytest.raises(ConfigError) as info:
+        parse_vary(["Kp=0:3", "Kp=1:2"])
+    assert str(info.value) == ("--vary 'Kp=1:2': Kp is already varied over 0:3; give each "
+                               "name once")
