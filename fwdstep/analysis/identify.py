@@ -53,7 +53,8 @@ class Identification:
     ``residual_rms``, ``rank``, ``singular_values``, ``unidentified`` (unit directions of
     parameter space the run does not excite), ``bandwidth`` (lambda, rad/s), ``rows``,
     ``names``; ``truth`` (optional) covers the first len(truth) parameters (e.g. the
-    regressor's, without the friction coefficients)."""
+    regressor's, without the friction coefficients); ``notes``: why intervals are absent
+    (NaN), if they are."""
     theta: np.ndarray
     std: np.ndarray
     lower: np.ndarray
@@ -67,6 +68,7 @@ class Identification:
     rows: int
     truth: np.ndarray | None = None
     names: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         out = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
@@ -228,13 +230,43 @@ def default_bandwidth(t) -> float:
     return min(20.0, 0.05 / float(np.median(np.diff(np.asarray(t, dtype=float)))))
 
 
+def _check_settings(bandwidth, confidence) -> None:
+    """A filter that decays (lambda > 0, finite) and a confidence level in (0, 1): a
+    negative lambda grows without bound, 0 filters nothing, a level outside (0, 1) has no
+    normal quantile (NaN or empty intervals reported as a result)."""
+    if bandwidth is not None and not (math.isfinite(float(bandwidth)) and bandwidth > 0):
+        raise ConfigError(f"bandwidth {bandwidth!r}: the filter lambda/(p + lambda) needs a "
+                          "finite lambda > 0 rad/s")
+    if not (0.0 < float(confidence) < 1.0):
+        raise ConfigError(f"confidence {confidence!r}: expected a level strictly between 0 "
+                          "and 1 (e.g. 0.95)")
+
+
+def _check_finite(t, arrays: dict) -> None:
+    """Refuse a log holding NaN or infinities (a diverged run, a gap): least squares would
+    fail in LAPACK or return NaN for every parameter."""
+    for what, a in arrays.items():
+        bad = ~np.isfinite(np.asarray(a, dtype=float).reshape(len(t), -1))
+        if bad.any():
+            k, j = np.argwhere(bad)[0]
+            raise ConfigError(f"identification: the logged {what} is not finite at t = "
+                              f"{t[k]:.6g} s (entry {j}, {int(bad.any(axis=1).sum())} "
+                              "sample(s) in all); identify from a run without them")
+
+
 def estimate(t, q, qdot, tau, block, bandwidth: float | None = None,
-             confidence: float = 0.95, truth=None, friction: str = "none") -> Identification:
-    """The least-squares estimate from logged arrays (module docstring)."""
+             confidence: float = 0.95, truth=None, friction: str = "none",
+             signals: dict | None = None) -> Identification:
+    """The least-squares estimate from logged arrays (module docstring); ``signals``: the
+    names of q, qdot, tau for messages."""
     t = np.asarray(t, dtype=float)
     if len(t) < 3:
         raise ConfigError("identification needs at least 3 logged samples")
-    lam = float(bandwidth) if bandwidth else default_bandwidth(t)
+    _check_settings(bandwidth, confidence)
+    label = {k: (f"{k} ({signals[k]})" if signals and signals.get(k) else k)
+             for k in ("q", "qdot", "tau")}
+    _check_finite(t, {"time": t, label["q"]: q, label["qdot"]: qdot, label["tau"]: tau})
+    lam = float(bandwidth) if bandwidth is not None else default_bandwidth(t)
     Phi = filtered_regressor(t, q, qdot, block, lam, friction)
     return least_squares(t, Phi, tau, lam, confidence, truth,
                          parameter_names(block, friction))
@@ -246,6 +278,7 @@ def least_squares(t, Phi: np.ndarray, tau, bandwidth: float, confidence: float =
     ``filtered_regressor`` (reusable for several torque records of one motion)."""
     from scipy.stats import norm
     t = np.asarray(t, dtype=float)
+    _check_settings(bandwidth, confidence)
     lam = float(bandwidth)
     T, n, p = Phi.shape
     tau = np.asarray(tau, dtype=float).reshape(T, n)
@@ -268,8 +301,18 @@ def least_squares(t, Phi: np.ndarray, tau, bandwidth: float, confidence: float =
     g = exponential_filter(t, impulse, lam)[min(3, T - 1):]
     trace_ffT = n * float(np.sum(np.cumsum(g * g)[:T]))
     trace_ffT += n * float(np.sum(g * g)) * max(0, T - len(g))
-    dof = max(trace_ffT - float(np.trace(inv @ middle)), 1e-300)
-    sigma2 = float(np.sum(r * r)) / dof
+    dof = trace_ffT - float(np.trace(inv @ middle))
+    notes = []
+    if dof <= 1e-9 * trace_ffT:
+        # the residual's expected size is not positive: the filtered samples are fewer
+        # than the parameters (a run short against 1/lambda), so sigma is not estimable
+        # (dividing by a clamped factor gave intervals of 1e144 reported as a result)
+        sigma2 = math.nan
+        notes.append(f"no intervals: the run's {T} samples filtered at lambda = {lam:g} "
+                     f"rad/s leave no residual degrees of freedom for {p} parameters "
+                     "(log a longer run, or raise --bandwidth)")
+    else:
+        sigma2 = float(np.sum(r * r)) / dof
     cov = sigma2 * inv @ middle @ inv
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     z = float(norm.ppf(0.5 + confidence / 2.0))
@@ -278,7 +321,8 @@ def least_squares(t, Phi: np.ndarray, tau, bandwidth: float, confidence: float =
                           rank=int(rank), singular_values=sv, unidentified=unidentified,
                           bandwidth=lam, rows=int(T * n),
                           truth=None if truth is None else np.asarray(truth, float).reshape(-1),
-                          names=list(names) if names else [f"theta[{i}]" for i in range(p)])
+                          names=list(names) if names else [f"theta[{i}]" for i in range(p)],
+                          notes=notes)
 
 
 def _driver(d, block: str, port: str) -> str | None:
@@ -317,13 +361,21 @@ def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
     if regressor not in blocks:
         raise ConfigError(f"--regressor '{regressor}': the run's diagram has no block "
                           f"'{regressor}'; blocks are: {', '.join(blocks)}", file=d.file)
+    try:
+        _regressor(blocks[regressor])
+    except ConfigError as exc:
+        raise ConfigError(f"--regressor: {exc}", file=d.file) from None
     q = q or _driver(d, regressor, "q")
     qdot = qdot or _driver(d, regressor, "qdot")
     if tau is None and q is not None:
         tau = _driver(d, q.rsplit(".", 1)[0], "tau")
     names = {"q": q, "qdot": qdot, "tau": tau}
     for what, sig in names.items():
-        if sig is None or sig not in r:
+        if sig is None:
+            raise ConfigError(f"identification: no {what} signal is implied by the diagram "
+                              f"(nothing drives it); pass --{what} SIGNAL, one of the "
+                              f"run's logged signals: {', '.join(r.names)}", file=d.file)
+        if sig not in r:
             raise ConfigError(f"identification needs the logged signal {what} "
                               f"('{sig}'); the run logged: {', '.join(r.names)}; run it with "
                               f"--set log=[{q}, {qdot}, {tau}] (and a dense log_every)",
@@ -331,14 +383,21 @@ def identify_run(run_dir: str, regressor: str, q=None, qdot=None, tau=None,
     if isinstance(truth, str):
         if truth not in r:
             raise ConfigError(f"--truth '{truth}' was not logged", file=d.file)
-        truth = np.asarray(r[truth])[0]
+        values = np.asarray(r[truth], dtype=float).reshape(len(r.t), -1)
+        moved = np.abs(values - values[0]).max(axis=0)
+        if np.any(moved > 1e-12 * np.maximum(np.abs(values[0]), 1.0)):
+            raise ConfigError(f"--truth '{truth}' changes during the run (by up to "
+                              f"{moved.max():.3g}): the truth is a constant parameter "
+                              "vector (e.g. the plant's arm.theta), not an estimate",
+                              file=d.file)
+        truth = values[0]
     p = len(parameter_names(blocks[regressor]))
     if truth is not None and np.size(truth) not in (p, len(parameter_names(blocks[regressor],
                                                                              friction))):
         raise ConfigError(f"--truth has {np.size(truth)} values; the regressor "
                           f"'{regressor}' has {p} parameters", file=d.file)
     ident = estimate(r.t, r[q], r[qdot], r[tau], blocks[regressor], bandwidth, confidence,
-                     truth, friction)
+                     truth, friction, signals=names)
     return ident, names, d
 
 

@@ -347,10 +347,11 @@ def cmd_identify(args) -> int:
         _err(str(exc))
         return EXIT_INPUT
     try:
+        from fwdstep.core.jsonable import jsonable
         data = ident.to_dict()
         data["signals"] = names
         with open(os.path.join(out.dir, "identify.json"), "w") as fh:
-            json.dump(data, fh, indent=1)
+            json.dump(jsonable(data), fh, indent=1)    # NaN (no interval) as null
         written = out.commit()
     finally:
         out.__exit__(None, None, None)
@@ -365,9 +366,13 @@ def cmd_identify(args) -> int:
     if known:
         error = np.abs(ident.theta[:known] - ident.truth)
         inside = int(np.sum(data["inside_interval"]))
+        covered = (f"{inside} of {known} true values inside their intervals"
+                   if np.all(np.isfinite(ident.std)) else "no intervals")
         print(f"against the truth: largest error {error.max():.3g} "
               f"({error.max() / max(np.abs(ident.truth).max(), 1e-300):.3g} of the largest "
-              f"true value); {inside} of {known} true values inside their intervals")
+              f"true value); {covered}")
+    for note in ident.notes:
+        print(f"note: {note}")
     if len(ident.unidentified):
         print(f"note: {len(ident.unidentified)} parameter direction(s) not excited by the "
               "run (see identify.json, 'unidentified')")

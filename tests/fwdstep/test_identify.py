@@ -95,3 +95,63 @@ def test_a_regressor_whose_C_breaks_property_2_is_refused(run):
     bad.__class__ = NotChristoffel
     with pytest.raises(ConfigError, match="does not satisfy Property 2"):
         estimate(r.t, r["arm.q"], r["arm.qdot"], r["tau.y"], bad, bandwidth=10.0)
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"bandwidth": 0.0}, "finite lambda > 0"),        # was: silently the default lambda
+    ({"bandwidth": -5.0}, "finite lambda > 0"),       # was: a growing 'filter', a result
+    ({"bandwidth": float("nan")}, "finite lambda > 0"),   # was: a LAPACK traceback
+    ({"confidence": 1.5}, "strictly between 0 and 1"),    # was: intervals [nan, nan]
+    ({"confidence": 0.0}, "strictly between 0 and 1"),    # was: zero-width intervals
+])
+def test_settings_without_meaning_are_refused(run, settings, message):
+    from fwdstep.core.errors import ConfigError
+    r, Y, _ = run
+    k = slice(0, 400)
+    with pytest.raises(ConfigError, match=message):
+        estimate(r.t[k], r["arm.q"][k], r["arm.qdot"][k], r["tau.y"][k], Y,
+                 **{"bandwidth": 10.0, **settings})
+
+
+def test_a_log_with_nan_is_refused_naming_the_signal_and_time(run):
+    from fwdstep.core.errors import ConfigError
+    r, Y, _ = run
+    k = slice(0, 400)
+    q = np.array(r["arm.q"][k])
+    q[100, 1] = np.nan                                # was: LinAlgError from lstsq
+    with pytest.raises(ConfigError, match=r"q \(arm.q\) is not finite at t = 0.05 s"):
+        estimate(r.t[k], q, r["arm.qdot"][k], r["tau.y"][k], Y, bandwidth=10.0,
+                 signals={"q": "arm.q"})
+
+
+def test_a_run_too_short_for_the_filter_gives_no_intervals_not_huge_ones(run):
+    """5 samples at 0.5 ms filtered at 20 rad/s are fewer than 4 parameters' worth of
+    independent filtered residual: sigma is not estimable.  The intervals were +-1e144."""
+    r, Y, truth = run
+    k = slice(0, 5)
+    ident = estimate(r.t[k], r["arm.q"][k], r["arm.qdot"][k], r["tau.y"][k], Y,
+                     bandwidth=20.0)
+    assert np.all(np.isnan(ident.std)) and np.all(np.isnan(ident.lower))
+    assert ident.notes and "no intervals" in ident.notes[0]
+    assert np.abs(ident.theta - truth).max() < 0.5   # the estimate itself is still given
+
+
+def test_cli_identify_refusals_are_one_line(tmp_path):
+    env = dict(os.environ, PYTHONPATH=ROOT, MPLBACKEND="Agg")
+    out = tmp_path / "run"
+    sets = ["--set", "step=0.001", "--set", "t_final=0.5", "--set", "log_every=1",
+            "--set", "log=[arm.q, arm.qdot, tau.y, adapt.theta_hat]"]
+    cli = [sys.executable, os.path.join(ROOT, "cli.py")]
+    done = subprocess.run(cli + ["run", SLOTINE_LI, *sets, "-o", str(out), "--no-plots", "-q"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    for extra, message in [
+            (["--regressor", "arm"], "'arm' (TwoLinkArm) is not a regressor"),
+            (["--regressor", "Y", "--q", "tau.y"], "pass --tau SIGNAL"),
+            (["--regressor", "Y", "--truth", "adapt.theta_hat"], "changes during the run"),
+            (["--regressor", "Y", "--bandwidth", "0"], "finite lambda > 0")]:
+        done = subprocess.run(cli + ["identify", str(out), *extra, "-o", str(tmp_path / "i")],
+                              env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 2, (extra, done.stdout)
+        assert message in done.stderr and len(done.stderr.strip().splitlines()) == 1, extra
+    assert not (tmp_path / "i").exists()
