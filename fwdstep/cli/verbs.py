@@ -327,7 +327,8 @@ def cmd_tune(args) -> int:
     if result.message:
         print(f"note: {result.message}")
     print(printable(f"wrote {', '.join(os.path.relpath(p) for p in written)}"))
-    return 0
+    # an interrupted search keeps its files but is not reported as finished
+    return 128 + result.interrupted if result.interrupted else 0
 
 
 # ---------------------------------------------------------------------------- identify

@@ -98,7 +98,9 @@ class Evaluation:
 class TuneResult:
     """What ``tune`` found: ``best`` (name -> value), ``best_cost``, ``initial`` (the
     diagram's own values, name -> value) and its cost, every ``Evaluation`` in
-    ``history``, ``runs`` (plain runs, runs with sensitivities), the files written."""
+    ``history``, ``runs`` (plain runs, runs with sensitivities), the files written;
+    ``interrupted``: the signal that stopped the search early (its best point so far is
+    reported and written; the CLI then exits 128 + that number)."""
     names: list
     bounds: list
     best: dict
@@ -111,6 +113,8 @@ class TuneResult:
     runs: dict = field(default_factory=dict)
     files: list = field(default_factory=list)
     message: str = ""
+    #: the signal that stopped the search (2 for Ctrl-C), 0 if it ran to its end
+    interrupted: int = 0
 
 
 class _Problem:
@@ -262,9 +266,13 @@ def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
         initial_constraints=list(start_ev.constraints), history=prob.history,
         runs={"plain": prob.plain_runs, "with_sensitivities": prob.sensitivity_runs,
               "total": prob.plain_runs + prob.sensitivity_runs},
-        message=("interrupted; " if interrupted is not None else "") + (
+        message="; ".join(m for m in (
+            "" if interrupted is None else
+            f"{getattr(interrupted, 'reason', 'interrupted by the user')} after "
+            f"{len(prob.history)} evaluations: the best point evaluated so far is reported",
             "" if feasible else "no evaluated point satisfies every constraint; the least "
-                                "violating one is reported"))
+                                "violating one is reported") if m),
+        interrupted=0 if interrupted is None else int(getattr(interrupted, "signum", 2)))
     if outdir is not None:
         result.files = write_tune(prob, result, outdir, figures)
     return result
@@ -352,6 +360,7 @@ def write_tune(prob: _Problem, result: TuneResult, outdir: str, figures: bool = 
         "best": {"values": result.best, "cost": _finite(result.best_cost),
                  "constraints": [_finite(v) for v in result.best_constraints]},
         "runs": result.runs, "message": result.message,
+        "status": "interrupted" if result.interrupted else "finished",
         "evaluations": len(result.history),
         "wall_time_s": round(sum(e.seconds for e in result.history), 3)}
     path = os.path.join(outdir, "tune.json")

@@ -257,7 +257,41 @@ def _tune_record(path: str) -> dict:
     if not isinstance(rec, dict) or not isinstance(rec.get("initial"), dict) \
             or not isinstance(rec.get("best"), dict):
         raise DamagedFileError(f"{path}: not a tuning record (no 'initial' and 'best')")
+    problem = _tune_record_problem(rec)
+    if problem:
+        raise DamagedFileError(f"{path}: damaged tuning record: {problem}")
     return rec
+
+
+def _tune_record_problem(rec: dict) -> str:
+    """What in a tune.json does not have the shape ``write_tune`` gives it (every field the
+    page reads: a damaged one was a bare traceback or a page of wrong rows), or ''."""
+    def number(v, none_ok=True):
+        return (v is None and none_ok) or (isinstance(v, (int, float))
+                                          and not isinstance(v, bool))
+
+    def strings(v):
+        return isinstance(v, list) and all(isinstance(x, str) for x in v)
+
+    subject_to = rec.get("subject_to", [])
+    if not strings(subject_to):
+        return "'subject_to' is not a list of constraints"
+    bounds = rec.get("bounds", {})
+    if not isinstance(bounds, dict) or not all(
+            isinstance(b, list) and len(b) == 2 and all(number(x, False) for x in b)
+            for b in bounds.values()):
+        return "'bounds' is not {name: [low, high]}"
+    for side in ("initial", "best"):
+        values = rec[side].get("values", {})
+        if not isinstance(values, dict) or not all(number(v) for v in values.values()):
+            return f"'{side}.values' is not {{name: number}}"
+        if not number(rec[side].get("cost")):
+            return f"'{side}.cost' is not a number"
+        cons = rec[side].get("constraints", [])
+        if not isinstance(cons, list) or not all(number(v) for v in cons) \
+                or len(cons) not in (0, len(subject_to)):
+            return f"'{side}.constraints' is not one number per constraint"
+    return ""
 
 
 def _tuning(run_dir: str, path: str) -> list:
@@ -268,6 +302,7 @@ def _tuning(run_dir: str, path: str) -> list:
              _pairs({k: v for k, v in (
                  ("diagram", rec.get("diagram")), ("minimize", rec.get("minimize")),
                  ("subject to", "; ".join(rec.get("subject_to") or []) or "(nothing)"),
+                 ("status", rec.get("status")),
                  ("runs", rec.get("runs")), ("time in the runs [s]", rec.get("wall_time_s")),
                  ("message", rec.get("message"))) if v not in (None, "")})]
     before, after = rec["initial"], rec["best"]

@@ -153,3 +153,59 @@ def test_a_name_varied_twice_is_refused():
         parse_vary(["Kp=0:3", "Kp=1:2"])
     assert str(info.value) == ("--vary 'Kp=1:2': Kp is already varied over 0:3; give each "
                                "name once")
+
+
+def test_an_interrupted_search_keeps_its_points_and_says_so(pi_diagram, tmp_path,
+                                                            monkeypatch, capsys):
+    """A signal mid-search: what was evaluated is written (history.csv holds every
+    evaluation), tune.json says 'interrupted', and the CLI exits 128 + the signal (it
+    exited 0 with 'note: interrupted; ' as if the search had finished)."""
+    import signal
+    from fwdstep.cli.arguments import main
+    from fwdstep.core.signals import Interrupted
+    from fwdstep.sweeps import tune as tune_module
+    real = tune_module._Problem.evaluate
+    calls = []
+
+    def evaluate(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 7:
+            raise Interrupted(signal.SIGTERM)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(tune_module._Problem, "evaluate", evaluate)
+    out = tmp_path / "t"
+    code = main(["tune", pi_diagram, "--vary", "Kp=0.05:4", "--vary", "Ki=0.02:1.5",
+                 "--minimize", "ise(e.y)", "--screen", "16", "--starts", "2", "-o", str(out),
+                 "-q"])
+    assert code == 128 + signal.SIGTERM
+    record = json.load(open(out / "tune.json"))
+    assert record["status"] == "interrupted" and record["evaluations"] == 6
+    assert record["message"].startswith("terminated (SIGTERM) after 6 evaluations")
+    with open(out / "history.csv") as fh:
+        assert len(list(csv.DictReader(fh))) == 6
+    assert "interrupted" in open(out / "report.html").read()
+
+
+@pytest.mark.parametrize("damage, field", [
+    (lambda rec: rec.update(bounds={"Kp": "x"}), "'bounds'"),
+    (lambda rec: rec.update(bounds={"Kp": [1]}), "'bounds'"),
+    (lambda rec: rec["initial"].update(values=[1, 2]), "'initial.values'"),
+    (lambda rec: rec.update(subject_to="abc"), "'subject_to'"),
+    (lambda rec: rec["best"].update(cost="low"), "'best.cost'"),
+])
+def test_report_of_a_damaged_tune_record_is_one_line(pi_diagram, tmp_path, damage, field):
+    """Each of these was a bare traceback (ValueError, IndexError, AttributeError) or, for
+    subject_to as a string, a page with one constraint row per character."""
+    from fwdstep.core.errors import DamagedFileError
+    from fwdstep.views.report import _tune_record
+    out = tmp_path / "t"
+    tune(pi_diagram, BOUNDS, "ise(e.y)", screen=2, starts=1, max_iterations=1,
+         outdir=str(out), figures=False)
+    path = out / "tune.json"
+    rec = json.load(open(path))
+    assert _tune_record(str(path)) == rec                 # as written: accepted
+    damage(rec)
+    json.dump(rec, open(path, "w"))
+    with pytest.raises(DamagedFileError, match=f"damaged tuning record: {field}"):
+        _tune_record(str(path))
