@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fwdstep.core.errors import ConfigError, FwdstepError
+from fwdstep.core.errors import ConfigError, DiagramError, FwdstepError
 from fwdstep.results.objectives import objective, parse_constraint, parse_objective
 
 FILES = ("history.csv", "history.png", "tune.json", "best.yaml", "before_after.png",
@@ -143,6 +143,7 @@ class _Problem:
         self.history: list = []
         self.plain_runs = 0
         self.sensitivity_runs = 0
+        self.failures: list = []        # why evaluations failed (load or run errors)
 
     def overrides(self, x) -> dict:
         out = dict(self.base)
@@ -162,10 +163,20 @@ class _Problem:
         from fwdstep.analysis.sensitivity import sensitivities
         from fwdstep.run.simulate import simulate
         wall = time.perf_counter()
-        d = self.diagram(x)
         status, grad, cons = "ok", None, []
         try:
-            if gradient:
+            # the diagram loaded at the start; a value of the box it refuses (an expression
+            # such as sqrt(K - 1), a matrix that is no longer positive definite) is a failed
+            # point of the search, as a diverging run is: it aborted the whole tuning and
+            # lost every evaluation made so far
+            d = self.diagram(x)
+        except DiagramError as exc:
+            d, status = None, "invalid"
+            self.failures.append(f"at {self._point(x)}: {exc}")
+        try:
+            if d is None:
+                r = None
+            elif gradient:
                 r = sensitivities(d, self.names, backend=self.backend)
                 self.sensitivity_runs += 1
             else:
@@ -173,6 +184,7 @@ class _Problem:
                 self.plain_runs += 1
         except FwdstepError as exc:
             r, status = getattr(exc, "result", None), "error"
+            self.failures.append(f"at {self._point(x)}: {exc}")
             if gradient:
                 self.sensitivity_runs += 1
             else:
@@ -197,6 +209,9 @@ class _Problem:
         self.history.append(ev)
         return ev
 
+    def _point(self, x) -> str:
+        return ", ".join(f"{k}={v:.6g}" for k, v in zip(self.names, x))
+
     def _value(self, r, expr, gradient):
         if not gradient:
             return objective(r, expr), None
@@ -208,6 +223,8 @@ class _Problem:
             return math.inf
         total = 0.0
         for v, (_, op, b) in zip(ev.constraints, self.constraints):
+            if not np.isfinite(v):      # max(0.0, nan) is 0.0: a NaN constraint counted as met
+                return math.inf
             gap = (v - b) if op == "<=" else (b - v)
             total += max(0.0, gap) / max(abs(b), 1e-12)
         return total
@@ -256,7 +273,9 @@ def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
     if not pool:
         if interrupted is not None and not inside:
             raise interrupted                   # (nothing inside the bounds was run yet)
-        raise ConfigError("every tuning run failed; narrow the --vary ranges", file=path)
+        first = f" (first: {prob.failures[0]})" if prob.failures else ""
+        raise ConfigError(f"every tuning run failed; narrow the --vary ranges{first}",
+                          file=path)
     best = min(pool, key=lambda e: (prob.violation(e), e.cost))
     result = TuneResult(
         names=prob.names, bounds=prob.bounds.tolist(),
@@ -271,7 +290,9 @@ def tune(path: str, vary: dict, minimize: str, subject_to=(), *, overrides=None,
             f"{getattr(interrupted, 'reason', 'interrupted by the user')} after "
             f"{len(prob.history)} evaluations: the best point evaluated so far is reported",
             "" if feasible else "no evaluated point satisfies every constraint; the least "
-                                "violating one is reported") if m),
+                                "violating one is reported",
+            "" if not prob.failures else
+            f"{len(prob.failures)} evaluation(s) failed (first {prob.failures[0]})") if m),
         interrupted=0 if interrupted is None else int(getattr(interrupted, "signum", 2)))
     if outdir is not None:
         result.files = write_tune(prob, result, outdir, figures)

@@ -209,3 +209,30 @@ def test_report_of_a_damaged_tune_record_is_one_line(pi_diagram, tmp_path, damag
     json.dump(rec, open(path, "w"))
     with pytest.raises(DamagedFileError, match=f"damaged tuning record: {field}"):
         _tune_record(str(path))
+
+
+def test_a_point_the_diagram_refuses_is_a_failed_evaluation_not_the_end(tmp_path):
+    """The reference sqrt(Kp - 1) cannot be evaluated for Kp < 1: those points of the box
+    fail (as a diverging run does) and the search goes on; the tuning aborted at the first
+    one and lost every evaluation made so far.  The optimum is then Kp just above 1 (the
+    reference ~0), which the exact ISE of a step of height sqrt(Kp - 1) confirms."""
+    path = tmp_path / "pi_sqrt.yaml"
+    path.write_text(PI.replace("value: 1.0", 'value: "sqrt(Kp - 1)"').replace("Kp: 0.5",
+                                                                              "Kp: 2"))
+    result = tune(str(path), {"Kp": (0.05, 4.0)}, "ise(e.y)", screen=8, starts=1,
+                  max_iterations=10, outdir=str(tmp_path / "t"), figures=False)
+    failed = [e for e in result.history if e.status == "invalid"]
+    assert failed and all(e.values[0] < 1 for e in failed)
+    assert all(e.status == "ok" for e in result.history if e.values[0] > 1)
+    assert "evaluation(s) failed" in result.message and "sqrt(Kp - 1)" in result.message
+    kp = result.best["Kp"]
+    assert 1 <= kp < 1.05
+    assert abs(result.best_cost - (kp - 1) * _exact_ise(kp, 0.2)) < 1e-3 * _exact_ise(kp, 0.2)
+
+
+def test_a_nan_constraint_is_not_counted_as_met(pi_diagram):
+    from fwdstep.sweeps.tune import Evaluation, _Problem
+    prob = _Problem(pi_diagram, BOUNDS, "ise(e.y)", ["max_abs(pi.y) <= 2"], None, None)
+    ev = lambda c: Evaluation(0, "screen", -1, np.zeros(2), 1.0, [c], None, "ok", False, 0.0)
+    assert prob.violation(ev(1.0)) == 0 and prob.violation(ev(3.0)) == 0.5
+    assert prob.violation(ev(float("nan"))) == float("inf")      # was 0: 'satisfied'
