@@ -1008,6 +1008,13 @@ def event_time_sensitivity(r, index: int, param: str) -> np.ndarray:
     NaN where the crossing is not differentiated (a note says why)."""
     if r.sensitivity_data is None:
         raise KeyError("this result has no sensitivities (simulate(d, sensitivities=[...]))")
+    count = len(r.sensitivity_data["events"])
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
+            or not 0 <= index < count:
+        # (a bare IndexError, and -1 silently the last event, before)
+        raise IndexError(f"event {index!r}: the run located {count} event(s), numbered "
+                         f"0 to {count - 1} (r.events)" if count else
+                         f"event {index!r}: the run has no events (r.events is empty)")
     for text, a, b, shape in r.sensitivity_data["parameters"]:
         if text == param:
             return np.asarray(r.sensitivity_data["events"][index, a:b]).reshape(shape)

@@ -203,6 +203,9 @@ def test_a_crossing_time_that_moves_with_the_parameters(tmp_path):
     assert np.abs(r.sensitivity("x.y", "b") - np.where(t < 1 / a, 0, t - 1 / a)).max() < 1e-12
     assert abs(event_time_sensitivity(r, 0, "a") + 1 / a**2) < 1e-12
     assert abs(event_time_sensitivity(r, 0, "b")) < 1e-12
+    for wrong in (1, -1, "0"):      # an IndexError without the count; -1 was the last one
+        with pytest.raises(IndexError, match=r"located 1 event\(s\), numbered 0 to 0"):
+            event_time_sensitivity(r, wrong, "a")
 
 
 @pytest.mark.parametrize("x0, L", [(3.37, 1.0), (3.3712, 1.3)])
