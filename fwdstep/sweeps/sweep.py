@@ -27,7 +27,8 @@ non-numeric parameters, and everything a block computed in ``setup`` outside ``p
 Fixed-step solvers batch, on the NumPy backend or the compiled one (``--backend compiled``:
 ``fwdstep.compiled.backend_numba`` runs a batch's variants in parallel threads; one process by
 default); an adaptive solver, or a diagram with a Stop block (which ends a whole batch's
-run), runs one variant per batch.  Zero crossings are located per variant in a batch
+run), runs one variant per batch; a variant its Stop block ended says so in its message
+(its metrics are at that time).  Zero crossings are located per variant in a batch
 (``fwdstep.run.crossings``): each variant keeps the numbers of its run alone.  A variant that diverges is frozen and marked while the rest of its batch goes on;
 if a block raises inside a batch, that batch is re-run variant by variant.
 
@@ -466,6 +467,10 @@ def _run_members(job: BatchJob, members: list) -> list:
     out = []
     for b, k in enumerate(members):
         o = {"status": "ok", "message": "", "diverged_at": None, "metrics": {}}
+        if r.status == "stopped" and d.batch == 1:
+            # a Stop block ended this variant's run early (its metrics are at that time):
+            # the sweep said only 'ok', as for a run to t_final
+            o["message"] = r.message
         died = r.diverged_at[b] if r.diverged_at is not None else np.nan
         if np.isfinite(died):
             reason = r.reasons.get(b) or (r.message if d.batch == 1 else "")   # block, port

@@ -90,6 +90,19 @@ def test_stop_block_ends_the_run_at_the_crossing(tmp_path):
     assert "stopped by block 'stop' (Stop) at t = 1.234" in r.message
 
 
+def test_a_stopped_variant_of_a_sweep_says_so(tmp_path):
+    """Each variant with a Stop block runs on its own and stops at x0 (x' = -1): the
+    sweep's table said only 'ok', as for a variant that ran to t_final."""
+    from fwdstep.sweeps.sweep import run_sweep
+    path = tmp_path / "stop.yaml"
+    path.write_text("parameters: {x0: 1.234}\n" + STOP.replace("initial: 1.234", "initial: x0"))
+    result = run_sweep(str(path), grid={"x0": [0.5, 7.0]})
+    stopped, through = result.variants
+    assert stopped.status == "ok" and stopped.message == \
+        "stopped by block 'stop' (Stop) at t = 0.5"
+    assert through.status == "ok" and through.message == ""     # t_final = 5 < 7: no stop
+
+
 def test_chattering_is_reported_once(tmp_path):
     """x' = -sign(x) (a Relay without hysteresis) slides on x = 0 from t = 0.5: one
     report, one note, and the run goes on (no storm of tiny steps)."""
