@@ -328,13 +328,21 @@ def _step(prog, a, H, lo, hi, b, end) -> None:
 
 def _located(bk, out, a, b, H, lo, hi, x0, K0a, G0, active) -> None:
     """From (a, x0) to b, every crossing of the ``active`` guards located and acted on;
-    x and G hold the step of size H from (a, x0) (which crossed)."""
+    x and G hold the step of size H from (a, x0) (which crossed).
+
+    A guard that crossed and was acted on (a reset reversing the motion: a bouncing ball)
+    may cross back and return to its side again before b: its sign at b is then the one
+    just after the crossing, and the rest of the step would run as if nothing happened (the
+    ball fell through the floor once its bounces were shorter than a step).  So when no
+    sign changed at b, those guards are looked at a little past the crossing (``_BACK``
+    tolerances): a sign change there is located like any other."""
     prog, x = bk.prog, bk.x
     G, K0 = prog.G, prog.k[0]
     ta = a
     while True:
         tau = _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi)
         ta = ta + tau
+        just = ((G >= 0) != (G0 >= 0)) & active & np.isfinite(G)   # crossed here
         if _crossed(bk, out, ta, min(ta, hi), G0, active):
             bk.stop_at = (ta, min(ta, hi))
             return
@@ -345,8 +353,26 @@ def _located(bk, out, a, b, H, lo, hi, x0, K0a, G0, active) -> None:
         G0, K0a, x0 = G.copy(), K0.copy(), x.copy()
         H = b - ta
         _step(prog, ta, H, lo, hi, b, None)
-        if not (((G >= 0) != (G0 >= 0)) & active).any():
+        if (((G >= 0) != (G0 >= 0)) & active).any():
+            continue
+        just &= active                             # (a chattering block is no longer)
+        if not just.any():
             return
+        back = min(H, _BACK * max(CROSSING_TOL, 4 * math.ulp(ta + H)))
+        xb = x.copy()                              # the state at b (its stage 1 is made
+        x[...] = x0                                # again by the caller)
+        K0[...] = K0a
+        prog.rest_h(ta, back, lo, hi)
+        prog.first_ts(min(ta + back, hi))
+        if not (((G >= 0) != (G0 >= 0)) & just & np.isfinite(G)).any():
+            x[...] = xb
+            return
+        H = back                                   # located in (0, back] next
+
+
+#: how far past an acted-on crossing (in crossing tolerances) a guard is looked at again
+#: when its sign at the end of the step is unchanged (``_located``)
+_BACK = 64
 
 
 def _locate(prog, x, K0, G, x0, K0a, G0, active, ta, H, lo, hi) -> float:
