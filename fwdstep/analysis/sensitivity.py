@@ -90,6 +90,7 @@ from fwdstep.analysis.jacobian import DIFFERENCE_STEP, OFFSETS as _OFFSETS, Bloc
 from fwdstep.core.errors import ConfigError, DiagramError
 from fwdstep.core.settings import BACKENDS
 from fwdstep.core.solvers import IVP_METHODS, TABLEAUX
+from fwdstep.results.result import NO_SENSITIVITIES
 
 _ELEMENT = re.compile(r"^(?P<name>[A-Za-z_][A-Za-z0-9_./]*?)(?:\[(?P<index>[0-9,\s]+)\])?$")
 
@@ -1007,7 +1008,7 @@ def event_time_sensitivity(r, index: int, param: str) -> np.ndarray:
     crossing's time moves with the parameters (a guard's root); declared times do not (0);
     NaN where the crossing is not differentiated (a note says why)."""
     if r.sensitivity_data is None:
-        raise KeyError("this result has no sensitivities (simulate(d, sensitivities=[...]))")
+        raise KeyError(NO_SENSITIVITIES)
     count = len(r.sensitivity_data["events"])
     if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
             or not 0 <= index < count:

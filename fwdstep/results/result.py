@@ -37,6 +37,12 @@ def events_line(events) -> str:
             f"t = {first.time:.9g} s, block '{first.block}' {first.kind}{where})")
 
 
+#: what asking a Result without sensitivities for one says (a loaded Result never has
+#: them: ``save`` / ``load_result`` keep the run's signals, not its sensitivities)
+NO_SENSITIVITIES = ("this result has no sensitivities: run fwdstep.simulate(d, "
+                    "sensitivities=[...]) to get them (they are not saved with a result: "
+                    "one loaded from disk has none)")
+
 class Result:
     """Time plus named signals of fixed shape.
 
@@ -113,8 +119,7 @@ class Result:
 
     def _parameter(self, param: str) -> tuple:
         if self.sensitivity_data is None:
-            raise KeyError("this result has no sensitivities: run fwdstep.sensitivities(d, "
-                           "[parameters]) to get them")
+            raise KeyError(NO_SENSITIVITIES)
         for p in self.sensitivity_data["parameters"]:
             if p[0] == param:
                 return p

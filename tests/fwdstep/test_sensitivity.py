@@ -433,3 +433,21 @@ def test_a_parameter_beyond_the_run_time_arrays_is_refused_as_a_reload_says(aske
     d = fwdstep.load_diagram(THEOREM1, {"t_final": 1})
     with pytest.raises(ConfigError, match=re.escape(message)):
         fwdstep.sensitivities(d, [asked])
+
+
+def test_a_result_loaded_from_disk_says_its_sensitivities_were_not_saved(tmp_path):
+    """Saving keeps the run's signals, not its sensitivities: asking the loaded Result for
+    one says so (it said only 'this result has no sensitivities')."""
+    from fwdstep.analysis.sensitivity import event_time_sensitivity
+    d = fwdstep.load_diagram(_write(tmp_path, DECAY))
+    r = fwdstep.simulate(d, sensitivities=["k"])
+    assert r.sensitivity("x.y", "k").shape == r["x.y"].shape
+    r.save(str(tmp_path / "out"))
+    loaded = fwdstep.load_result(str(tmp_path / "out"))
+    np.testing.assert_array_equal(loaded["x.y"], r["x.y"])
+    for ask in (lambda: loaded.sensitivity("x.y", "k"),
+                lambda: loaded.sensitivity_matrix("x.y"),
+                lambda: event_time_sensitivity(loaded, 0, "k")):
+        with pytest.raises(KeyError, match="not saved with a result: one loaded from disk "
+                                           "has none"):
+            ask()
