@@ -12,22 +12,13 @@ import pytest
 
 import fwdstep
 from fwdstep.core.errors import ConfigError
+from tests.fwdstep.test_sensitivity import DECAY   # x' = -k x: the same diagram on both paths
 
 numba = pytest.importorskip("numba")
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 THEOREM1 = os.path.join(ROOT, "diagrams", "theorem1.yaml")
 SLOTINE_LI = os.path.join(ROOT, "diagrams", "slotine_li.yaml")
-
-DECAY = """
-parameters: {k: 0.7, x0: 1.5}
-blocks:
-  x: {type: Integrator, initial: x0, shape: []}
-  g: {type: Gain, gain: -k}
-connections: [x.y -> g.u, g.y -> x.u]
-simulation: {t_final: 2, step: 0.001, solver: rk4, log_every: 10}
-log: [x.y]
-"""
 
 SAMPLED = """
 parameters: {k: 3.0, x0: 1.0}
